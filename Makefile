@@ -1,0 +1,32 @@
+# Every target creates or reuses .venv and installs what it needs; nothing relies
+# on what happens to be installed on the machine.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: demo test bench samples clean
+
+$(STAMP): pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	touch $(STAMP)
+
+demo: $(STAMP)
+	rm -rf demo-out && mkdir -p demo-out
+	$(BIN)/condtrack track sample_sequences/occlusion -o demo-out/occlusion.h5
+	$(BIN)/condtrack track sample_sequences/occlusion -o demo-out/occlusion.csv -q
+	@echo "demo outputs: $(CURDIR)/demo-out/occlusion.h5 $(CURDIR)/demo-out/occlusion.csv"
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+bench: $(STAMP)
+	$(BIN)/python -m condtrack_cli.evaluate.bench --out bench/results.md
+
+samples: $(STAMP)
+	$(BIN)/python -m condtrack_cli.frames.synthetic --write-samples sample_sequences
+
+clean:
+	rm -rf $(VENV) demo-out .pytest_cache

@@ -1,0 +1,17 @@
+"""condtrack: batch point tracking with conditional filters.
+
+Implements the conditional linear (CLF) and nonlinear (CNLF) filters of Arnaud,
+Mémin & Cernuschi-Frías, "Filtrage conditionnel pour la trajectographie dans des
+séquences d'images", RFIA 2004, with the baselines STK and MDR.
+"""
+
+__version__ = "0.1.0"
+
+#: Version of the output schema (CSV columns, HDF5 layout); see docs/schema.md.
+SCHEMA_VERSION = "1.0"
+
+#: The pixel convention stated in every output file.
+COORDINATES = (
+    "pixels; x to the right, y down; origin (0,0) at the centre of the top-left pixel "
+    "(OpenCV convention)"
+)

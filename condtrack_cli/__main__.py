@@ -1,0 +1,3 @@
+from condtrack_cli.cli import main
+
+main()

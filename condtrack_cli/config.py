@@ -1,0 +1,250 @@
+"""YAML configuration -> validated, frozen per-stage settings.
+
+A config has one section per stage kind. ``frames``, ``detect``, ``motion`` and
+``measure`` name their implementation with ``name:`` and give its parameters
+beside it; ``filter`` names the tracking method with ``method:`` and holds one
+sub-section of parameters per filter; ``output`` holds the writers' settings.
+Every value is checked against the stage's settings model before any work
+starts: an unknown key, a wrong type or an out-of-range value is refused with a
+message naming the key and what is allowed.
+
+``configs/default.yaml`` is :func:`default_yaml` written out; a test keeps the
+two equal.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal, Mapping
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from condtrack_cli import registry
+from condtrack_cli.errors import CondtrackError
+
+
+class StageSettings(BaseModel):
+    """Base of every stage's settings: frozen, strict types, unknown keys refused."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+
+
+class OutputSettings(StageSettings):
+    """Settings of the CSV and HDF5 writers."""
+
+    hdf5_compression: int = Field(4, ge=0, le=9, description="gzip level of HDF5 datasets (0 = none)")
+    store_measurements: bool = Field(True, description="write /measurements/z and /measurements/R to HDF5")
+
+
+#: Stage kinds whose section is ``name:`` plus that implementation's parameters.
+NAMED_SECTIONS = ("frames", "detect", "motion", "measure")
+
+#: Implementation used when a section gives no ``name``.
+DEFAULT_NAMES = {"frames": "auto", "detect": "shi_tomasi", "motion": "robust", "measure": "ssd"}
+
+#: Method used when neither the config nor ``-m`` names one.
+DEFAULT_METHOD = "stk"
+
+SECTION_DOCS = {
+    "frames": "how frames are read (folder of images or video)",
+    "detect": "where points come from when no queries file is given",
+    "motion": "robust parametric motion between consecutive frames (paper §5.1)",
+    "measure": "SSD matching of the reference patch and R_k from the correlation surface (§5.2)",
+    "filter": "the tracking method and each filter's parameters",
+    "output": "the CSV and HDF5 writers",
+}
+
+
+@dataclass(frozen=True)
+class StageConfig:
+    """The implementation chosen for one stage and its validated settings."""
+
+    name: str
+    settings: StageSettings
+
+
+@dataclass(frozen=True)
+class Config:
+    """A whole validated configuration."""
+
+    stages: Mapping[str, StageConfig]  #: one per NAMED_SECTIONS
+    method: str
+    filters: Mapping[str, StageSettings]  #: settings of every registered filter
+    output: OutputSettings
+
+    def stage(self, kind: str) -> StageConfig:
+        return self.stages[kind]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The resolved configuration as plain data (what the HDF5 file stores)."""
+        out: dict[str, Any] = {}
+        for kind in NAMED_SECTIONS:
+            stage = self.stages[kind]
+            out[kind] = {"name": stage.name, **stage.settings.model_dump()}
+        out["filter"] = {"method": self.method, **{n: s.model_dump() for n, s in self.filters.items()}}
+        out["output"] = self.output.model_dump()
+        return out
+
+    def to_yaml(self) -> str:
+        return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+
+def valid_methods() -> list[str]:
+    """Tracking methods: the registered filters (the router ``auto`` is one of them)."""
+    return registry.names("filter")
+
+
+def _format_validation_error(prefix: str, error: ValidationError, model: type[BaseModel]) -> str:
+    first = error.errors()[0]
+    key = ".".join([prefix, *map(str, first["loc"])])
+    if first["type"] == "extra_forbidden":
+        valid = ", ".join(model.model_fields)
+        return f"config key '{key}': unknown key; valid keys: {valid}"
+    got = first.get("input")
+    return f"config key '{key}': {first['msg']} (got {got!r})"
+
+
+def _validate(prefix: str, model: type[StageSettings], params: Any) -> StageSettings:
+    if not isinstance(params, dict):
+        raise CondtrackError(f"config key '{prefix}': expected a mapping of keys to values, got {params!r}")
+    try:
+        return model.model_validate(params)
+    except ValidationError as error:
+        raise CondtrackError(_format_validation_error(prefix, error, model)) from None
+
+
+def _named_section(kind: str, raw: Any) -> StageConfig:
+    raw = dict(raw or {}) if isinstance(raw, dict) or raw is None else raw
+    if not isinstance(raw, dict):
+        raise CondtrackError(f"config key '{kind}': expected a mapping, got {raw!r}")
+    name = raw.pop("name", DEFAULT_NAMES[kind])
+    try:
+        spec = registry.get(kind, name)
+    except ValueError as error:
+        raise CondtrackError(f"config key '{kind}.name': {error}") from None
+    return StageConfig(name, _validate(kind, spec.settings, raw))
+
+
+def resolve(raw: Mapping[str, Any]) -> Config:
+    """Validate a raw config mapping (YAML already parsed); raise CondtrackError."""
+    allowed = (*NAMED_SECTIONS, "filter", "output")
+    for key in raw:
+        if key not in allowed:
+            raise CondtrackError(f"config key '{key}': unknown section; valid sections: {', '.join(allowed)}")
+    stages = {kind: _named_section(kind, raw.get(kind)) for kind in NAMED_SECTIONS}
+    filter_raw = raw.get("filter") or {}
+    if not isinstance(filter_raw, dict):
+        raise CondtrackError(f"config key 'filter': expected a mapping, got {filter_raw!r}")
+    filter_raw = dict(filter_raw)
+    method = filter_raw.pop("method", DEFAULT_METHOD)
+    if method not in valid_methods():
+        raise CondtrackError(f"config key 'filter.method': unknown method {method!r}; valid: {', '.join(valid_methods())}")
+    filters = {}
+    for name in registry.names("filter"):
+        filters[name] = _validate(f"filter.{name}", registry.get("filter", name).settings, filter_raw.pop(name, None) or {})
+    if filter_raw:
+        key = next(iter(filter_raw))
+        raise CondtrackError(
+            f"config key 'filter.{key}': unknown key; valid keys: method, {', '.join(registry.names('filter'))}"
+        )
+    output = _validate("output", OutputSettings, raw.get("output") or {})
+    return Config(stages=stages, method=method, filters=filters, output=output)
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """``'motion.levels=3'`` -> (['motion', 'levels'], 3); the value is read as YAML."""
+    key, sep, value = text.partition("=")
+    path = key.strip().split(".")
+    if not sep or not all(path):
+        raise CondtrackError(f"--set {text!r}: expected section.key=value")
+    try:
+        parsed = yaml.safe_load(value)
+    except yaml.YAMLError:
+        raise CondtrackError(f"--set {text!r}: the value is not valid YAML") from None
+    return path, parsed
+
+
+def _apply_override(raw: dict, path: list[str], value: Any) -> None:
+    node = raw
+    for depth, part in enumerate(path[:-1]):
+        child = node.get(part)
+        if child is None:
+            child = node[part] = {}
+        if not isinstance(child, dict):
+            raise CondtrackError(f"--set {'.'.join(path)}: '{'.'.join(path[: depth + 1])}' is not a section")
+        node = child
+    node[path[-1]] = value
+
+
+def read_yaml(path: str | Path) -> dict:
+    """Parse a config file into a mapping; CondtrackError naming the file otherwise."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as error:
+        raise CondtrackError(f"cannot read config file {str(path)!r}: {error.strerror or error}") from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark else ""
+        raise CondtrackError(f"config file {str(path)!r} is not valid YAML{where}") from None
+    if raw is None:
+        return {}
+    if not isinstance(raw, dict):
+        raise CondtrackError(f"config file {str(path)!r}: expected a mapping of sections at the top level")
+    return raw
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] = (), method: str | None = None) -> Config:
+    """The validated config: defaults, then the file, then ``--set`` overrides, then ``-m``."""
+    raw = read_yaml(path) if path is not None else {}
+    raw = copy.deepcopy(raw)
+    for text in overrides:
+        _apply_override(raw, *parse_override(text))
+    if method is not None:
+        _apply_override(raw, ["filter", "method"], method)
+    return resolve(raw)
+
+
+def _yaml_scalar(value: Any) -> str:
+    return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix("...").strip()
+
+
+def _settings_lines(model: type[BaseModel], indent: str) -> list[str]:
+    lines = []
+    for key, field in model.model_fields.items():
+        value = _yaml_scalar(field.default)
+        lines.append(f"{indent}{key}: {value}  # {field.description}")
+    return lines
+
+
+def default_yaml() -> str:
+    """The default configuration as commented YAML (the text of configs/default.yaml)."""
+    lines = [
+        "# condtrack default configuration: every key, with its default and meaning.",
+        "# Generated by `condtrack stages --default-config`; tests keep it equal to the code.",
+        "",
+    ]
+    for kind in NAMED_SECTIONS:
+        spec = registry.get(kind, DEFAULT_NAMES[kind])
+        lines.append(f"{kind}:  # {SECTION_DOCS[kind]}")
+        lines.append(f"  name: {spec.name}  # implementation; see `condtrack stages` for the others")
+        lines += _settings_lines(spec.settings, "  ")
+        lines.append("")
+    lines.append(f"filter:  # {SECTION_DOCS['filter']}")
+    lines.append(f"  method: {DEFAULT_METHOD}  # one of: {', '.join(valid_methods())} (-m overrides)")
+    for name in registry.names("filter"):
+        spec = registry.get("filter", name)
+        lines.append(f"  {name}:  # {spec.summary}")
+        lines += _settings_lines(spec.settings, "    ")
+    lines.append("")
+    lines.append(f"output:  # {SECTION_DOCS['output']}")
+    lines += _settings_lines(OutputSettings, "  ")
+    return "\n".join(lines) + "\n"
+
+
+__all__ = ["Config", "StageConfig", "StageSettings", "OutputSettings", "load_config", "resolve", "default_yaml", "Field", "Literal"]

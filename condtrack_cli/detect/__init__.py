@@ -1,0 +1,1 @@
+"""Point detection (Shi-Tomasi) and the trackability test on the structure tensor."""

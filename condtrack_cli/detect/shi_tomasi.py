@@ -1,0 +1,64 @@
+"""Shi-Tomasi corners and the trackability test (Shi & Tomasi 1994; paper §5.3).
+
+The structure tensor of a point is the mean over a ``block`` x ``block`` window of
+g g^T, g the image gradient in grey levels per pixel (3x3 Sobel / 8). Its
+smaller eigenvalue, in (grey levels / px)^2, says how well the window can be
+located in every direction: near zero on a flat region and along an edge, large
+on a corner. A point is trackable when it exceeds ``min_eigenvalue``.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from condtrack_cli.config import StageSettings
+from condtrack_cli.registry import register
+
+
+class ShiTomasiSettings(StageSettings):
+    max_points: int = Field(300, ge=1, description="most points detected on the first frame")
+    quality: float = Field(0.01, gt=0, le=1, description="keep corners whose score is at least this fraction of the best")
+    min_distance: float = Field(8.0, ge=0, description="least distance between two detected points (px)")
+    border: int = Field(16, ge=0, description="no point closer than this to the frame's edge (px)")
+    block: int = Field(7, ge=3, le=31, description="side of the structure-tensor window (px, odd)")
+    min_eigenvalue: float = Field(
+        10.0, ge=0, description="trackability floor on the smaller structure-tensor eigenvalue ((grey/px)^2)"
+    )
+
+
+def min_eigenvalue_map(gray: np.ndarray, block: int) -> np.ndarray:
+    """(H, W) float32 smaller eigenvalue of the block-mean structure tensor, (grey/px)^2."""
+    gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    size = (block, block)
+    a = cv2.boxFilter(gx * gx, -1, size, borderType=cv2.BORDER_REFLECT)
+    b = cv2.boxFilter(gx * gy, -1, size, borderType=cv2.BORDER_REFLECT)
+    c = cv2.boxFilter(gy * gy, -1, size, borderType=cv2.BORDER_REFLECT)
+    return (a + c) / 2 - np.sqrt(((a - c) / 2) ** 2 + b * b)
+
+
+def trackable(gray: np.ndarray, xy: np.ndarray, block: int, floor: float) -> np.ndarray:
+    """(P,) bool: the smaller eigenvalue at each (P, 2) position (nearest pixel) exceeds ``floor``."""
+    eig = min_eigenvalue_map(gray, block)
+    cols = np.clip(np.rint(xy[:, 0]).astype(int), 0, gray.shape[1] - 1)
+    rows = np.clip(np.rint(xy[:, 1]).astype(int), 0, gray.shape[0] - 1)
+    return eig[rows, cols] > floor
+
+
+@register("detect", "shi_tomasi", ShiTomasiSettings, "Shi-Tomasi corners that pass the trackability test")
+def detect_points(settings: ShiTomasiSettings, gray: np.ndarray) -> np.ndarray:
+    """(M, 2) float64 corner positions on a (H, W) float32 frame, best first."""
+    height, width = gray.shape
+    mask = np.zeros((height, width), np.uint8)
+    b = settings.border
+    mask[b : height - b, b : width - b] = 255
+    corners = cv2.goodFeaturesToTrack(
+        gray, maxCorners=settings.max_points, qualityLevel=settings.quality,
+        minDistance=settings.min_distance, mask=mask, blockSize=settings.block, useHarrisDetector=False,
+    )
+    if corners is None:
+        return np.zeros((0, 2))
+    xy = corners.reshape(-1, 2).astype(np.float64)
+    return xy[trackable(gray, xy, settings.block, settings.min_eigenvalue)]

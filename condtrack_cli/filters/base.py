@@ -1,0 +1,69 @@
+"""The tracker contract shared by every filter.
+
+A tracker holds the state of all P points as arrays and advances the started
+ones together, frame by frame: ``step`` first advances every point whose query
+frame is before the current frame (``_advance``, one vectorised call on the
+index array of those points), then starts the points queried on this frame
+(``_start``). It reports a :class:`FrameEstimate` for all P points each frame.
+``finish`` turns the per-frame reports into :class:`Tracks`; a filter whose
+estimate of past frames changes with later data (the particle filter's path
+estimate) overrides it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from condtrack_cli.types import METHODS, Frame, FrameEstimate, Queries, SequenceInfo, Tracks
+
+
+class Tracker:
+    """Base of all filters; subclasses set ``method`` and implement ``_start``/``_advance``."""
+
+    method: str = ""
+
+    def __init__(self, queries: Queries, info: SequenceInfo):
+        p = len(queries)
+        self.queries = queries
+        self.info = info
+        self.xy = np.full((p, 2), np.nan)
+        self.cov = np.full((p, 2, 2), np.nan)
+        self.visible = np.zeros(p, bool)
+        self.z = np.full((p, 2), np.nan)
+        self.R = np.full((p, 2, 2), np.nan)
+        self.method_code = np.full(p, -1, np.int8)
+
+    def step(self, frame: Frame, prev: Frame | None) -> FrameEstimate:
+        """Advance the started points from ``prev`` to ``frame``, start the new ones, report all."""
+        self.z[:] = np.nan
+        self.R[:] = np.nan
+        started = np.flatnonzero(self.queries.frame < frame.index)
+        if prev is not None and started.size:
+            self._advance(started, prev, frame)
+        new = np.flatnonzero(self.queries.frame == frame.index)
+        if new.size:
+            self.xy[new] = self.queries.xy[new]
+            self.visible[new] = True
+            self.method_code[new] = METHODS.index(self.method)
+            self._start(new, frame)
+        return FrameEstimate(
+            xy=self.xy.copy(), cov=self.cov.copy(), visible=self.visible.copy(),
+            z=self.z.copy(), R=self.R.copy(), method=self.method_code.copy(),
+        )
+
+    def _start(self, index: np.ndarray, frame: Frame) -> None:
+        """Initialise the filter state of points ``index`` (positions already set)."""
+
+    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
+        """Move points ``index`` from ``prev`` to ``frame``; update xy, cov, visible, z, R."""
+        raise NotImplementedError
+
+    def finish(self, history: list[FrameEstimate]) -> Tracks:
+        """Stack the per-frame reports into (P, F, ...) arrays."""
+        def stack(name: str) -> np.ndarray:
+            return np.stack([getattr(h, name) for h in history], axis=1)
+
+        return Tracks(
+            queries=self.queries, xy=stack("xy"), cov=stack("cov"), visible=stack("visible"),
+            method=stack("method"), z=stack("z"), R=stack("R"),
+        )

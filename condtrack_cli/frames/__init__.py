@@ -1,0 +1,1 @@
+"""Frame sources: folders of images and videos, streamed one frame at a time."""

@@ -1,0 +1,146 @@
+"""Read a frame folder or a video as a stream of 8-bit grey frames.
+
+Conversion to 8-bit grey, the same for every input:
+- colour (BGR or BGRA) -> grey with OpenCV's weights 0.299 R + 0.587 G + 0.114 B;
+- 16-bit -> 8-bit by value / 257, rounded (full range 0..65535 -> 0..255);
+- 8-bit grey is kept as it is; any other pixel type is refused.
+
+A folder is read in natural sort order (``frame2`` before ``frame10``). Files
+whose extension is not an image extension are skipped with one warning line on
+stderr (``frames.non_image_files: refuse`` makes them an error instead).
+"""
+
+from __future__ import annotations
+
+import re
+import sys
+from pathlib import Path
+from typing import Iterator, Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from condtrack_cli.config import StageSettings
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.registry import register
+from condtrack_cli.types import SequenceInfo
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")
+
+
+class FrameSettings(StageSettings):
+    non_image_files: Literal["skip", "refuse"] = Field(
+        "skip", description="files in a frame folder that are not images: skip (warn once) or refuse"
+    )
+
+
+def natural_key(name: str) -> list:
+    """Sort key putting ``frame2`` before ``frame10``."""
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+
+
+def to_gray8(image: np.ndarray, where: str) -> np.ndarray:
+    """(H, W[, C]) uint8/uint16 -> (H, W) uint8 grey, as documented above."""
+    if image.dtype == np.uint16:
+        image = ((image.astype(np.uint32) * 2 + 257) // 514).astype(np.uint8)  # round(v / 257)
+    elif image.dtype != np.uint8:
+        raise CondtrackError(f"{where}: unsupported pixel type {image.dtype} (8- or 16-bit images only)")
+    if image.ndim == 3:
+        code = {3: cv2.COLOR_BGR2GRAY, 4: cv2.COLOR_BGRA2GRAY}.get(image.shape[2])
+        if code is None:
+            raise CondtrackError(f"{where}: unsupported number of channels {image.shape[2]}")
+        image = cv2.cvtColor(image, code)
+    if image.ndim != 2:
+        raise CondtrackError(f"{where}: unsupported image shape {image.shape}")
+    return np.ascontiguousarray(image)
+
+
+class FolderSource:
+    """A folder of image files, one frame per file."""
+
+    def __init__(self, folder: Path, settings: FrameSettings):
+        names = sorted((p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")), key=natural_key)
+        images = [n for n in names if Path(n).suffix.lower() in IMAGE_EXTENSIONS]
+        others = [n for n in names if Path(n).suffix.lower() not in IMAGE_EXTENSIONS]
+        if others and settings.non_image_files == "refuse":
+            raise CondtrackError(f"{folder}: '{others[0]}' is not an image file (frames.non_image_files: refuse)")
+        if not images:
+            raise CondtrackError(f"{folder}: no image files ({', '.join(IMAGE_EXTENSIONS)}) in the folder")
+        if others:
+            print(f"warning: {folder}: skipping {len(others)} non-image file(s), e.g. '{others[0]}'", file=sys.stderr)
+        self.paths = [folder / n for n in images]
+        first = self.read(0)
+        self.info = SequenceInfo(str(folder), first.shape[1], first.shape[0], len(self.paths), 0.0)
+
+    def read(self, index: int) -> np.ndarray:
+        """Frame ``index`` as (H, W) uint8."""
+        path = self.paths[index]
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise CondtrackError(f"frame {index} ({path}): not a readable image")
+        image = to_gray8(raw, f"frame {index} ({path})")
+        if hasattr(self, "info") and image.shape != (self.info.height, self.info.width):
+            raise CondtrackError(
+                f"frame {index} ({path}): size {image.shape[1]}x{image.shape[0]} differs from the first frame's "
+                f"{self.info.width}x{self.info.height}"
+            )
+        return image
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        for index in range(len(self.paths)):
+            yield self.read(index)
+
+
+class VideoSource:
+    """A video file read through OpenCV, decoded one frame at a time."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        capture = self._open()
+        count = 0
+        while capture.grab():
+            count += 1
+        fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
+        capture.release()
+        if count == 0:
+            raise CondtrackError(f"{path}: not a readable video (OpenCV decoded no frame)")
+        first = next(iter(self))
+        self.info = SequenceInfo(str(path), first.shape[1], first.shape[0], count, fps if np.isfinite(fps) else 0.0)
+
+    def _open(self) -> cv2.VideoCapture:
+        capture = cv2.VideoCapture(str(self.path))
+        if not capture.isOpened():
+            raise CondtrackError(f"{self.path}: not a readable video (OpenCV could not open it)")
+        return capture
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        capture = self._open()
+        try:
+            index = 0
+            while True:
+                ok, raw = capture.read()
+                if not ok:
+                    break
+                yield to_gray8(raw, f"frame {index} of {self.path}")
+                index += 1
+        finally:
+            capture.release()
+
+    def read(self, index: int) -> np.ndarray:
+        """Frame ``index`` (decodes from the start: videos are read sequentially)."""
+        for position, image in enumerate(self):
+            if position == index:
+                return image
+        raise CondtrackError(f"{self.path}: frame {index} is past the end")
+
+
+@register("frames", "auto", FrameSettings, "a folder of images or a video file, chosen by the path")
+def open_frames(settings: FrameSettings, path: str | Path) -> FolderSource | VideoSource:
+    """Open ``path`` as a frame source; CondtrackError naming the path otherwise."""
+    path = Path(path)
+    if not path.exists():
+        raise CondtrackError(f"{path}: no such file or folder")
+    if path.is_dir():
+        return FolderSource(path, settings)
+    return VideoSource(path)

@@ -1,0 +1,134 @@
+"""The arrays that flow between stages, their shapes and the pixel convention.
+
+Pixel convention (every position in this package): x to the right, y down, in
+pixels, origin (0, 0) at the *centre* of the top-left pixel, so pixel (row i,
+column j) covers [j-0.5, j+0.5] x [i-0.5, i+0.5]. This is OpenCV's convention.
+
+Shapes use P = points, F = frames, N = particles.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SequenceInfo:
+    """What is known of an input before its frames are read."""
+
+    input: str
+    width: int
+    height: int
+    n_frames: int
+    fps: float  #: frames per second; 0.0 when the input has no timing (a folder)
+
+
+@dataclass(frozen=True)
+class Queries:
+    """Points to track, each from its own frame.
+
+    point_id: (P,) int64; frame: (P,) int64 query frame; xy: (P, 2) float64 pixels.
+    """
+
+    point_id: np.ndarray
+    frame: np.ndarray
+    xy: np.ndarray
+
+    def __post_init__(self) -> None:
+        p = len(self.point_id)
+        if self.frame.shape != (p,) or self.xy.shape != (p, 2):
+            raise ValueError("Queries arrays disagree in shape")
+
+    def __len__(self) -> int:
+        return len(self.point_id)
+
+
+@dataclass
+class Frame:
+    """One frame as stages see it.
+
+    index: position in the sequence (0-based); image: (H, W) uint8 grey.
+    ``cache`` lets stages share derived arrays (pyramids, gradients) computed
+    once per frame; keys are owned by the stage that writes them.
+    """
+
+    index: int
+    image: np.ndarray
+    cache: dict = field(default_factory=dict)
+
+    @property
+    def gray(self) -> np.ndarray:
+        """(H, W) float32 grey levels in [0, 255]."""
+        if "gray" not in self.cache:
+            self.cache["gray"] = self.image.astype(np.float32)
+        return self.cache["gray"]
+
+
+@dataclass(frozen=True)
+class FrameEstimate:
+    """What a tracker reports for all P points on one frame.
+
+    xy: (P, 2) position, NaN where the point has no state yet.
+    cov: (P, 2, 2) posterior covariance in px^2; NaN when the method has none.
+    visible: (P,) bool.
+    z: (P, 2) raw measurement (NaN where none was made).
+    R: (P, 2, 2) measurement covariance in px^2; +inf on the diagonal when the
+       correlation surface carried no information, NaN where no measurement.
+    method: (P,) int8 index into ``METHODS`` of the filter that produced the row
+       (-1 where the point has no state).
+    """
+
+    xy: np.ndarray
+    cov: np.ndarray
+    visible: np.ndarray
+    z: np.ndarray
+    R: np.ndarray
+    method: np.ndarray
+
+
+#: Method names as written in outputs; ``FrameEstimate.method`` indexes this tuple.
+METHODS = ("stk", "mdr", "clf", "cnlf")
+
+
+@dataclass(frozen=True)
+class Tracks:
+    """A whole tracking result, as written to CSV and HDF5.
+
+    xy: (P, F, 2) float64, NaN where the point has no state.
+    cov: (P, F, 2, 2) float64 px^2, NaN where undefined, inf where unbounded.
+    visible: (P, F) bool.
+    method: (P, F) int8 index into ``METHODS``, -1 where no state.
+    z, R: raw measurements, (P, F, 2) and (P, F, 2, 2), as in ``FrameEstimate``.
+    """
+
+    queries: Queries
+    xy: np.ndarray
+    cov: np.ndarray
+    visible: np.ndarray
+    method: np.ndarray
+    z: np.ndarray
+    R: np.ndarray
+
+    @property
+    def has_state(self) -> np.ndarray:
+        """(P, F) bool: rows that exist in the long CSV."""
+        return np.isfinite(self.xy).all(axis=-1)
+
+    def point_methods(self) -> list[str]:
+        """(P,) the method that produced most of each point's frames."""
+        counts = (self.method[:, :, None] == np.arange(len(METHODS))).sum(axis=1)  # (P, M)
+        names = np.array(METHODS + ("",), dtype=object)
+        best = np.where(counts.any(axis=1), counts.argmax(axis=1), len(METHODS))
+        return list(names[best])
+
+
+def empty_estimate(n_points: int) -> FrameEstimate:
+    """A FrameEstimate with no state for any of ``n_points`` points."""
+    nan2 = np.full((n_points, 2), np.nan)
+    nan22 = np.full((n_points, 2, 2), np.nan)
+    return FrameEstimate(
+        xy=nan2, cov=nan22, visible=np.zeros(n_points, bool), z=nan2.copy(), R=nan22.copy(),
+        method=np.full(n_points, -1, np.int8),
+    )
