@@ -12,8 +12,8 @@ stderr (``frames.non_image_files: refuse`` makes them an error instead).
 
 from __future__ import annotations
 
+import logging
 import re
-import sys
 from pathlib import Path
 from typing import Iterator, Literal
 
@@ -68,7 +68,9 @@ class FolderSource:
         if not images:
             raise CondtrackError(f"{folder}: no image files ({', '.join(IMAGE_EXTENSIONS)}) in the folder")
         if others:
-            print(f"warning: {folder}: skipping {len(others)} non-image file(s), e.g. '{others[0]}'", file=sys.stderr)
+            logging.getLogger("condtrack").warning(
+                "%s: skipping %d non-image file(s), e.g. '%s'", folder, len(others), others[0]
+            )
         self.paths = [folder / n for n in images]
         first = self.read(0)
         self.info = SequenceInfo(str(folder), first.shape[1], first.shape[0], len(self.paths), 0.0)

@@ -1,0 +1,98 @@
+"""Read track files written by condtrack (CSV or HDF5) back into :class:`Tracks`.
+
+A CSV holds no frame count: its tracks span frames 0 .. the last frame that has
+a row. A point's query is its first row. HDF5 files of an unknown
+``schema_version`` are refused.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from condtrack_cli import SCHEMA_VERSION
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.output.write import CSV_COLUMNS
+from condtrack_cli.types import METHODS, Queries, Tracks
+
+
+def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
+    try:
+        lines = path.read_text(encoding="ascii").splitlines()
+    except (OSError, UnicodeDecodeError) as error:
+        raise CondtrackError(f"{path}: cannot read the track file ({error})") from None
+    if not lines or tuple(lines[0].split(",")) != CSV_COLUMNS:
+        raise CondtrackError(f"{path}: not a condtrack CSV (expected the header {','.join(CSV_COLUMNS)})")
+    cells = [line.split(",") for line in lines[1:] if line]
+    if any(len(row) != len(CSV_COLUMNS) for row in cells):
+        bad = next(i for i, row in enumerate(cells) if len(row) != len(CSV_COLUMNS))
+        raise CondtrackError(f"{path}: row {bad + 2} has {len(cells[bad])} fields, expected {len(CSV_COLUMNS)}")
+    table = np.array(cells, dtype=str).reshape(-1, len(CSV_COLUMNS))
+    try:
+        ids = table[:, 0].astype(np.int64)
+        frames = table[:, 1].astype(np.int64)
+        values = table[:, 2:7].astype(np.float64)
+        visible = table[:, 7].astype(np.int64).astype(bool)
+    except ValueError as error:
+        raise CondtrackError(f"{path}: a value is not a number ({error})") from None
+    unknown = set(np.unique(table[:, 8])) - set(METHODS)
+    if unknown:
+        raise CondtrackError(f"{path}: unknown method {sorted(unknown)[0]!r}; valid: {', '.join(METHODS)}")
+    method = np.select([table[:, 8] == name for name in METHODS], np.arange(len(METHODS))).astype(np.int8)
+    point_ids, first_row, point_index = np.unique(ids, return_index=True, return_inverse=True)
+    n_points, n_frames = len(point_ids), (int(frames.max()) + 1 if len(frames) else 0)
+    xy = np.full((n_points, n_frames, 2), np.nan)
+    cov = np.full((n_points, n_frames, 2, 2), np.nan)
+    vis = np.zeros((n_points, n_frames), bool)
+    codes = np.full((n_points, n_frames), -1, np.int8)
+    xy[point_index, frames] = values[:, :2]
+    cov[point_index, frames] = values[:, [2, 3, 3, 4]].reshape(-1, 2, 2)
+    vis[point_index, frames] = visible
+    codes[point_index, frames] = method
+    first_frame = np.full(n_points, np.iinfo(np.int64).max)
+    np.minimum.at(first_frame, point_index, frames)
+    queries = Queries(point_ids, first_frame, xy[np.arange(n_points), first_frame])
+    empty = np.full_like(xy, np.nan)
+    tracks = Tracks(queries, xy, cov, vis, codes, empty, np.full_like(cov, np.nan))
+    return tracks, {"n_frames": n_frames}
+
+
+def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
+    try:
+        f = h5py.File(path, "r")
+    except OSError as error:
+        raise CondtrackError(f"{path}: not a readable HDF5 file ({error})") from None
+    with f:
+        meta = {key: (value.decode() if isinstance(value, bytes) else value) for key, value in f.attrs.items()}
+        version = meta.get("schema_version")
+        if version != SCHEMA_VERSION:
+            raise CondtrackError(
+                f"{path}: schema_version {version!r} is not supported (this condtrack reads {SCHEMA_VERSION!r})"
+            )
+        try:
+            t = f["tracks"]
+            queries_table = f["queries"][()]
+            queries = Queries(t["point_id"][()], queries_table[:, 0].astype(np.int64), queries_table[:, 1:3])
+            xy = t["xy"][()]
+            nan = np.full_like(xy, np.nan)
+            z = f["measurements/z"][()] if "measurements" in f else nan
+            R = f["measurements/R"][()] if "measurements" in f else np.full(xy.shape + (2,), np.nan)
+            tracks = Tracks(queries, xy, t["cov"][()], t["visible"][()].astype(bool), t["method_code"][()], z, R)
+        except (KeyError, OSError, ValueError, IndexError) as error:
+            raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file ({error})") from None
+    return tracks, meta
+
+
+def read_tracks(path: str | Path) -> tuple[Tracks, dict[str, Any]]:
+    """Read a .csv, .h5 or .hdf5 track file; CondtrackError naming the file on any problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise CondtrackError(f"{path}: no such file")
+    if path.suffix.lower() == ".csv":
+        return _read_csv(path)
+    if path.suffix.lower() in (".h5", ".hdf5"):
+        return _read_hdf5(path)
+    raise CondtrackError(f"{path}: unknown track file format '{path.suffix}' (use .csv, .h5 or .hdf5)")

@@ -1,0 +1,120 @@
+"""CSV and HDF5 writers (DESIGN.md §5; docs/schema.md).
+
+CSV: long format, one row per point per frame on which the point has a state,
+ordered by point then frame, columns
+``point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method``, ``\\n`` line ends.
+Floats use fixed formats (``FLOAT_FORMATS``): positions with 6 decimals
+(round-trip to 1e-6 px), covariances in ``%.6e``; an infinite variance is
+written ``inf`` and an undefined one ``nan``.
+
+HDF5: datasets written without timestamps, with fixed chunking and gzip
+compression, so that one input, config and seed give identical datasets.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from condtrack_cli import COORDINATES, SCHEMA_VERSION, __version__
+from condtrack_cli.config import OutputSettings
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.output.atomic import atomic_path
+from condtrack_cli.registry import get, register
+from condtrack_cli.types import METHODS, SequenceInfo, Tracks
+
+CSV_COLUMNS = ("point_id", "frame", "x", "y", "cov_xx", "cov_xy", "cov_yy", "visible", "method")
+FLOAT_FORMATS = {"x": "%.6f", "y": "%.6f", "cov_xx": "%.6e", "cov_xy": "%.6e", "cov_yy": "%.6e"}
+
+
+def csv_text(tracks: Tracks) -> str:
+    """The long CSV (header included) of ``tracks``."""
+    points, frames = np.nonzero(tracks.has_state)  # row-major: by point then frame
+    xy = tracks.xy[points, frames]
+    cov = tracks.cov[points, frames]
+    methods = np.array(METHODS, dtype=object)[tracks.method[points, frames]]
+    columns = [
+        np.char.mod("%d", tracks.queries.point_id[points]),
+        np.char.mod("%d", frames),
+        np.char.mod(FLOAT_FORMATS["x"], xy[:, 0]),
+        np.char.mod(FLOAT_FORMATS["y"], xy[:, 1]),
+        np.char.mod(FLOAT_FORMATS["cov_xx"], cov[:, 0, 0]),
+        np.char.mod(FLOAT_FORMATS["cov_xy"], cov[:, 0, 1]),
+        np.char.mod(FLOAT_FORMATS["cov_yy"], cov[:, 1, 1]),
+        np.char.mod("%d", tracks.visible[points, frames].astype(int)),
+        methods.astype(str),
+    ]
+    header = ",".join(CSV_COLUMNS)
+    if not len(points):
+        return header + "\n"
+    rows = columns[0]
+    for column in columns[1:]:
+        rows = np.char.add(np.char.add(rows, ","), column)
+    return header + "\n" + "\n".join(rows.tolist()) + "\n"
+
+
+@register("output", "csv", OutputSettings, "long CSV, one row per point per frame")
+def write_csv(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
+    path.write_bytes(csv_text(tracks).encode("ascii"))
+
+
+def _dataset(group: h5py.Group, name: str, data: np.ndarray, settings: OutputSettings, **attrs: Any) -> None:
+    options: dict[str, Any] = {"track_times": False}
+    if data.ndim and data.size and settings.hdf5_compression:
+        chunks = (min(data.shape[0], 64),) + data.shape[1:]
+        options.update(chunks=chunks, compression="gzip", compression_opts=settings.hdf5_compression, shuffle=True)
+    dataset = group.create_dataset(name, data=data, **options)
+    for key, value in attrs.items():
+        dataset.attrs[key] = value
+
+
+@register("output", "hdf5", OutputSettings, "self-describing HDF5 with measurements and metadata")
+def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
+    """Write the self-describing HDF5 file (DESIGN.md §5)."""
+    q = tracks.queries
+    with h5py.File(path, "w", track_order=False) as f:
+        attrs = {
+            "schema_version": SCHEMA_VERSION, "condtrack_version": __version__,
+            "input": info.input, "width": info.width, "height": info.height,
+            "n_frames": info.n_frames, "fps": info.fps, "coordinates": COORDINATES,
+        }
+        attrs.update(meta)
+        for key, value in attrs.items():
+            f.attrs[key] = value
+        group = f.create_group("tracks")
+        _dataset(group, "point_id", q.point_id.astype(np.int64), settings)
+        _dataset(group, "xy", tracks.xy, settings, units="px", missing="NaN where the point has no state")
+        _dataset(group, "cov", tracks.cov, settings, units="px^2", meaning="posterior covariance; NaN undefined, inf unbounded")
+        _dataset(group, "visible", tracks.visible, settings)
+        _dataset(group, "method", np.array(tracks.point_methods(), dtype=object), settings)
+        group["method"].attrs["meaning"] = "the method that produced most of the point's frames"
+        _dataset(group, "method_code", tracks.method, settings, names=",".join(METHODS),
+                 meaning="per frame: index into names; -1 where no state")
+        _dataset(f, "queries", np.column_stack([q.frame, q.xy]).astype(np.float64), settings, columns="frame,x,y")
+        if settings.store_measurements:
+            m = f.create_group("measurements")
+            _dataset(m, "z", tracks.z, settings, units="px", missing="NaN where no measurement was made")
+            _dataset(m, "R", tracks.R, settings, units="px^2", meaning="inf diagonal: no information (uniform surface)")
+
+
+#: Output file extension -> registered writer.
+WRITERS = {".csv": "csv", ".h5": "hdf5", ".hdf5": "hdf5"}
+
+
+def writer_for(path: Path) -> str:
+    """The writer name for ``path``'s extension; CondtrackError for an unknown one."""
+    try:
+        return WRITERS[path.suffix.lower()]
+    except KeyError:
+        raise CondtrackError(f"{path}: unknown output format '{path.suffix}' (use .csv, .h5 or .hdf5)") from None
+
+
+def write_tracks(tracks: Tracks, path: str | Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
+    """Write ``tracks`` to ``path`` (.csv, .h5 or .hdf5), atomically: the file is whole or absent."""
+    path = Path(path)
+    writer = get("output", writer_for(path)).factory
+    with atomic_path(path) as temporary:
+        writer(tracks, temporary, info, meta, settings)

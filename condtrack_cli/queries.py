@@ -1,0 +1,77 @@
+"""Query points: read from a CSV (``frame,x,y`` and optional ``point_id``) or detected."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.types import Queries, SequenceInfo
+
+REQUIRED_COLUMNS = ("frame", "x", "y")
+
+
+def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
+    """Queries from ``path``, checked against the sequence; ordered by point_id.
+
+    Without a ``point_id`` column the points are numbered 0.. in file order. A
+    point must lie inside the frame ([-0.5, W-0.5] x [-0.5, H-0.5], the pixel
+    convention of DESIGN.md §6) and its frame in [0, n_frames).
+    """
+    path = Path(path)
+    try:
+        with path.open(newline="", encoding="utf-8") as handle:
+            rows = list(csv.reader(handle))
+    except (OSError, UnicodeDecodeError) as error:
+        raise CondtrackError(f"{path}: cannot read the queries file ({error})") from None
+    if not rows:
+        raise CondtrackError(f"{path}: empty queries file (expected a header frame,x,y[,point_id])")
+    header = [name.strip() for name in rows[0]]
+    for name in REQUIRED_COLUMNS:
+        if name not in header:
+            raise CondtrackError(f"{path}: missing column '{name}' (the header must have frame,x,y[,point_id])")
+    body = [row for row in rows[1:] if any(cell.strip() for cell in row)]
+    if not body:
+        raise CondtrackError(f"{path}: no query rows")
+    columns = {name: header.index(name) for name in (*REQUIRED_COLUMNS, "point_id") if name in header}
+    values = {}
+    for name, column in columns.items():
+        cells = []
+        for line, row in enumerate(body, start=2):
+            try:
+                cells.append(float(row[column]))
+            except (IndexError, ValueError):
+                cell = row[column] if column < len(row) else ""
+                raise CondtrackError(f"{path}: row {line}, column '{name}': {cell!r} is not a number") from None
+        values[name] = np.array(cells)
+    for name in ("frame", "point_id"):
+        if name in values and not np.all(values[name] == np.round(values[name])):
+            line = int(np.argmax(values[name] != np.round(values[name]))) + 2
+            raise CondtrackError(f"{path}: row {line}, column '{name}': must be a whole number")
+    point_id = values["point_id"].astype(np.int64) if "point_id" in values else np.arange(len(body), dtype=np.int64)
+    frame = values["frame"].astype(np.int64)
+    xy = np.column_stack([values["x"], values["y"]])
+    unique_ids, counts = np.unique(point_id, return_counts=True)
+    if (counts > 1).any():
+        raise CondtrackError(f"{path}: point_id {int(unique_ids[np.argmax(counts > 1)])} appears more than once")
+    bad_frame = (frame < 0) | (frame >= info.n_frames)
+    if bad_frame.any():
+        line = int(np.argmax(bad_frame)) + 2
+        raise CondtrackError(f"{path}: row {line}: frame {frame[line - 2]} is outside the sequence (0..{info.n_frames - 1})")
+    inside = (xy[:, 0] >= -0.5) & (xy[:, 0] <= info.width - 0.5) & (xy[:, 1] >= -0.5) & (xy[:, 1] <= info.height - 0.5)
+    if not inside.all():
+        line = int(np.argmax(~inside)) + 2
+        raise CondtrackError(
+            f"{path}: row {line}: point ({xy[line - 2, 0]:g}, {xy[line - 2, 1]:g}) is outside the "
+            f"{info.width}x{info.height} frame"
+        )
+    order = np.argsort(point_id, kind="stable")
+    return Queries(point_id[order], frame[order], xy[order])
+
+
+def detected_queries(xy: np.ndarray) -> Queries:
+    """Queries for (M, 2) points detected on frame 0, numbered 0..M-1."""
+    m = len(xy)
+    return Queries(np.arange(m, dtype=np.int64), np.zeros(m, np.int64), np.asarray(xy, np.float64).reshape(m, 2))
