@@ -1,0 +1,178 @@
+"""TAP-Vid accuracy metrics and the 95% coverage of the predicted covariances.
+
+The definitions are those of TAP-Vid (Doersch et al., "TAP-Vid: A Benchmark for
+Tracking Any Point in a Video", NeurIPS 2022, and ``compute_tapvid_metrics`` in
+google-deepmind/tapnet), in pixels of the evaluated sequence (no rescaling to
+256 x 256):
+
+- Scored frames. ``'first'``: the frames strictly after each point's query frame;
+  ``'strided'``: every frame but the query frame. Frames without ground truth
+  (``gt_known`` False) are never scored.
+- Within x: the predicted position is at a Euclidean distance *strictly* below x
+  pixels from the ground truth, x in ``THRESHOLDS`` = 1, 2, 4, 8, 16.
+- ``pts_within_x`` (<delta^x): over GT-visible scored frames, the fraction within
+  x, whatever the predicted visibility. ``delta_avg``: their mean.
+- ``jaccard_x`` = TP / (GT-visible + FP), with TP = GT visible, predicted visible
+  and within x; FP = predicted visible and (GT occluded or not within x), both
+  over scored frames. ``AJ``: their mean.
+- ``OA``: the fraction of scored frames whose predicted visibility equals the GT
+  visibility.
+
+A frame on which the prediction has no position (NaN) counts as predicted
+*not visible* and *not within* any threshold.
+
+Two additions of ours:
+
+- ``median_err``: the median distance over GT-visible scored frames, a frame
+  without a predicted position counting as an infinite distance (so it is null
+  when more than half of those frames have no prediction).
+- ``cov95``: the fraction of GT-visible scored frames whose GT position lies in
+  the predicted 95% ellipse, {d : d^T C^-1 d <= chi2.ppf(0.95, 2)} with d the
+  error and C the predicted covariance. A covariance with an infinite entry is
+  unbounded and contains every position. Frames without a prediction, with a NaN
+  covariance, or with a finite covariance that is not positive definite have no
+  ellipse and are not counted. Null when no frame is counted.
+
+Null values: a metric that cannot be computed is ``None`` (JSON ``null``). In
+particular, when the scored GT has no occluded frame, ``OA``, ``AJ`` and the
+Jaccards are ``None``: with every GT position visible there is no visibility to
+judge (a tracker that calls everything visible would score OA = 1 and Jaccard =
+<delta^x), so they would only repeat ``pts_within_x``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import numpy as np
+
+#: Distance thresholds in pixels.
+THRESHOLDS = (1, 2, 4, 8, 16)
+
+#: Query modes: which frames of a point are scored.
+QUERY_MODES = ("first", "strided")
+
+#: Probability mass of the coverage ellipse.
+COVERAGE = 0.95
+
+#: chi2.ppf(COVERAGE, 2): the chi-square law with 2 degrees of freedom has CDF
+#: 1 - exp(-q / 2), hence the closed form -2 ln(1 - p) = 5.991...
+CHI2_2DOF = -2.0 * math.log(1.0 - COVERAGE)
+
+#: The keys of ``tapvid_metrics``' result, in display order.
+METRIC_KEYS = (
+    ("delta_avg", "AJ", "OA")
+    + tuple(f"pts_within_{x}" for x in THRESHOLDS)
+    + tuple(f"jaccard_{x}" for x in THRESHOLDS)
+    + ("median_err", "cov95", "n_points", "n_frames")
+)
+
+
+def scored_frames(query_frame: np.ndarray, n_frames: int, mode: Literal["first", "strided"]) -> np.ndarray:
+    """(P, F) bool: the frames scored for each point, before removing frames without GT.
+
+    query_frame: (P,) int, each point's query frame. ``'first'``: frames > query
+    frame; ``'strided'``: frames != query frame.
+    """
+    if mode not in QUERY_MODES:
+        raise ValueError(f"unknown query mode {mode!r}; valid: {', '.join(QUERY_MODES)}")
+    frames = np.arange(n_frames)[None, :]  # (1, F)
+    q = np.asarray(query_frame)[:, None]  # (P, 1)
+    return frames > q if mode == "first" else frames != q
+
+
+def _ratio(numerator: np.ndarray | int, denominator: np.ndarray | int) -> float | None:
+    """numerator / denominator as a float, None when the denominator is 0."""
+    return float(numerator / denominator) if denominator else None
+
+
+def _mean_or_none(values: list[float | None]) -> float | None:
+    """Mean of ``values``, None if any is None."""
+    return None if any(v is None for v in values) else float(np.mean(values))
+
+
+def coverage_inside(error: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each error lies in the 95% ellipse of its covariance.
+
+    error: (..., 2) predicted minus GT position, NaN where there is no prediction.
+    cov: (..., 2, 2) predicted covariance in px^2.
+
+    Returns ``(counted, inside)``, both (...) bool: ``counted`` where an ellipse
+    exists (finite error, and a covariance with an infinite entry or finite and
+    positive definite); ``inside`` where counted and d^T C^-1 d <= ``CHI2_2DOF``
+    (always, for an infinite covariance).
+    """
+    has_error = np.isfinite(error).all(axis=-1)
+    unbounded = np.isinf(cov).any(axis=(-2, -1)) & ~np.isnan(cov).any(axis=(-2, -1))
+    finite = np.isfinite(cov).all(axis=(-2, -1))
+    sxx, sxy, syx, syy = (np.where(finite, cov[..., i, j], 0.0) for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)))
+    det = sxx * syy - sxy * syx
+    definite = finite & (sxx > 0) & (det > 0)
+    counted = has_error & (unbounded | definite)
+    # Sanitised operands so that no NaN/inf arithmetic (and no warning) happens off the mask.
+    dx, dy = (np.where(counted & definite, error[..., k], 0.0) for k in (0, 1))
+    det_safe = np.where(definite, det, 1.0)
+    m2 = (syy * dx * dx - (sxy + syx) * dx * dy + sxx * dy * dy) / det_safe  # Mahalanobis^2
+    inside = counted & (unbounded | (m2 <= CHI2_2DOF))
+    return counted, inside
+
+
+def tapvid_metrics(
+    pred_xy: np.ndarray,
+    pred_visible: np.ndarray,
+    pred_cov: np.ndarray | None,
+    gt_xy: np.ndarray,
+    gt_visible: np.ndarray,
+    gt_known: np.ndarray,
+    query_frame: np.ndarray,
+    mode: Literal["first", "strided"],
+) -> dict[str, float | int | None]:
+    """TAP-Vid metrics of one sequence, pooled over points and frames (see the module docstring).
+
+    pred_xy: (P, F, 2) predicted positions in pixels, NaN where none.
+    pred_visible: (P, F) bool predicted visibility (ignored where pred_xy is NaN).
+    pred_cov: (P, F, 2, 2) predicted covariances in px^2, or None (then cov95 is None).
+    gt_xy: (P, F, 2) GT positions in pixels (finite where visible and known).
+    gt_visible: (P, F) bool GT visibility. gt_known: (P, F) bool, False where the
+    GT says nothing about the frame (never scored).
+    query_frame: (P,) int each point's query frame. mode: ``'first'`` or ``'strided'``.
+
+    Returns a dict with exactly the keys of ``METRIC_KEYS``: floats in [0, 1]
+    (``median_err`` in pixels) or None where not computable; ``n_points`` = P and
+    ``n_frames`` = F as ints.
+    """
+    n_points, n_frames = gt_visible.shape
+    scored = scored_frames(query_frame, n_frames, mode) & gt_known  # (P, F)
+    gt_vis = gt_visible & scored  # (P, F) GT-visible scored frames
+    gt_occ = ~gt_visible & scored  # (P, F) GT-occluded scored frames
+    has_pred = np.isfinite(pred_xy).all(axis=-1)  # (P, F)
+    pred_vis = pred_visible & has_pred
+    dist = np.hypot(*np.moveaxis(pred_xy - gt_xy, -1, 0))  # (P, F), NaN where no prediction
+    within = dist[None] < np.array(THRESHOLDS, float)[:, None, None]  # (T, P, F), False where NaN
+    n_vis = int(gt_vis.sum())
+    judge_visibility = bool(gt_occ.any())
+
+    tp = (within & pred_vis & gt_vis).sum(axis=(1, 2))  # (T,)
+    fp = (pred_vis & (gt_occ | (gt_vis & ~within))).sum(axis=(1, 2))  # (T,)
+    pts = [_ratio(n, n_vis) for n in (within & gt_vis).sum(axis=(1, 2))]
+    jac = [_ratio(t, n_vis + f) if judge_visibility else None for t, f in zip(tp, fp)]
+    out: dict[str, float | int | None] = {
+        "delta_avg": _mean_or_none(pts),
+        "AJ": _mean_or_none(jac),
+        "OA": _ratio(((pred_vis == gt_visible) & scored).sum(), scored.sum()) if judge_visibility else None,
+    }
+    out.update({f"pts_within_{x}": v for x, v in zip(THRESHOLDS, pts)})
+    out.update({f"jaccard_{x}": v for x, v in zip(THRESHOLDS, jac)})
+
+    errors = np.where(has_pred, dist, np.inf)[gt_vis]
+    median = float(np.median(errors)) if errors.size else math.inf
+    out["median_err"] = median if math.isfinite(median) else None
+
+    if pred_cov is None:
+        out["cov95"] = None
+    else:
+        counted, inside = coverage_inside(pred_xy - gt_xy, pred_cov)
+        out["cov95"] = _ratio((inside & gt_vis).sum(), (counted & gt_vis).sum())
+    out["n_points"], out["n_frames"] = int(n_points), int(n_frames)
+    return out

@@ -1,0 +1,52 @@
+"""Shared fixtures: real photographs shipped with the package, and paths to shared data."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+ASSETS = REPO / "condtrack_cli" / "frames" / "assets"
+SAMPLES = REPO / "sample_sequences"
+SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+def load_asset(name: str) -> np.ndarray:
+    """(H, W) uint8 grey photograph from the package assets."""
+    image = cv2.imread(str(ASSETS / name), cv2.IMREAD_GRAYSCALE)
+    assert image is not None, name
+    return image
+
+
+@pytest.fixture
+def photo() -> np.ndarray:
+    return load_asset("camera.png")
+
+
+def shared_sequence(name: str) -> Path:
+    """Path of a ``../shared/data`` sequence, or skip the test with a message when absent."""
+    path = SHARED_DATA / name
+    if not path.is_dir():
+        pytest.skip(f"shared data {path} is absent")
+    return path
+
+
+def translate(image: np.ndarray, dx: float, dy: float) -> np.ndarray:
+    """``image`` moved by (dx, dy) px (content at x goes to x + dx), bilinear, borders reflected."""
+    m = np.float32([[1, 0, dx], [0, 1, dy]])
+    return cv2.warpAffine(image, m, image.shape[::-1], flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+
+
+@pytest.fixture
+def shifted_folder(tmp_path, photo) -> tuple[Path, np.ndarray]:
+    """A folder of 6 frames of the photo moving by (1.5, -0.75) px per frame; returns (folder, shifts (F, 2))."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    shifts = np.array([[1.5 * k, -0.75 * k] for k in range(6)])
+    crop = photo[96:352, 96:416]
+    for k, (dx, dy) in enumerate(shifts):
+        cv2.imwrite(str(folder / f"f{k}.png"), translate(crop, dx, dy))
+    return folder, shifts

@@ -1,0 +1,71 @@
+"""Configuration: defaults, the shipped default file, and refusal of bad values with the key named."""
+
+from __future__ import annotations
+
+import pytest
+
+from condtrack_cli.config import default_yaml, load_config
+from condtrack_cli.errors import CondtrackError
+
+from conftest import REPO
+
+
+def test_default_file_is_the_code_defaults():
+    assert (REPO / "configs" / "default.yaml").read_text() == default_yaml()
+    assert load_config(REPO / "configs" / "default.yaml") == load_config(None)
+
+
+def test_every_key_of_the_default_file_has_a_comment():
+    for line in default_yaml().splitlines():
+        if ":" in line and not line.lstrip().startswith("#"):
+            assert "  # " in line, line
+
+
+def test_override_and_method():
+    config = load_config(None, ["motion.levels=2", "filter.stk.win_size=15"], method="stk")
+    assert config.stage("motion").settings.levels == 2
+    assert config.filters["stk"].win_size == 15
+    assert config.to_dict()["motion"]["levels"] == 2
+
+
+@pytest.mark.parametrize(
+    "overrides, key, hint",
+    [
+        (["motion.levelz=3"], "motion.levelz", "valid keys"),
+        (["motion.levels=0"], "motion.levels", "greater than or equal to 1"),
+        (["motion.levels=three"], "motion.levels", "integer"),
+        (["motion.model=projective"], "motion.model", "'translation', 'affine' or 'quadratic'"),
+        (["filter.stk.win_size=2"], "filter.stk.win_size", "greater than or equal to 3"),
+        (["filter.kalman.x=1"], "filter.kalman", "valid keys"),
+        (["tracker.x=1"], "tracker", "valid sections"),
+        (["motion.name=nope"], "motion.name", "valid: robust"),
+    ],
+)
+def test_bad_values_are_refused_naming_the_key(overrides, key, hint):
+    with pytest.raises(CondtrackError) as error:
+        load_config(None, overrides)
+    assert f"'{key}'" in str(error.value)
+    assert hint in str(error.value)
+
+
+def test_unknown_method_lists_the_valid_ones():
+    with pytest.raises(CondtrackError, match="filter.method.*valid: .*stk"):
+        load_config(None, method="kalman")
+
+
+def test_bad_files(tmp_path):
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("motion: [levels: 3\n")
+    with pytest.raises(CondtrackError, match="broken.yaml.*not valid YAML"):
+        load_config(broken)
+    listing = tmp_path / "list.yaml"
+    listing.write_text("- 1\n- 2\n")
+    with pytest.raises(CondtrackError, match="mapping of sections"):
+        load_config(listing)
+    with pytest.raises(CondtrackError, match="cannot read config file"):
+        load_config(tmp_path / "missing.yaml")
+
+
+def test_set_needs_key_and_value():
+    with pytest.raises(CondtrackError, match="section.key=value"):
+        load_config(None, ["motion.levels"])

@@ -1,0 +1,91 @@
+"""Frame readers: folders and videos give the same frames, natural sort, conversions, bad inputs."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.frames.readers import FrameSettings, natural_key, open_frames, to_gray8
+
+
+def _frames(n=5, shape=(48, 64)):
+    rng = np.random.default_rng(7)
+    return [rng.integers(0, 256, shape, dtype=np.uint8) for _ in range(n)]
+
+
+def test_folder_and_lossless_video_give_the_same_frames(tmp_path):
+    frames = _frames()
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    for k, image in enumerate(frames):
+        cv2.imwrite(str(folder / f"frame{k}.png"), image)
+    video = tmp_path / "seq.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 10, (64, 48), isColor=False)
+    for image in frames:
+        writer.write(image)
+    writer.release()
+    from_folder = open_frames(FrameSettings(), folder)
+    from_video = open_frames(FrameSettings(), video)
+    assert from_folder.info.n_frames == from_video.info.n_frames == 5
+    assert (from_video.info.width, from_video.info.height) == (64, 48)
+    for a, b, truth in zip(from_folder, from_video, frames):
+        np.testing.assert_array_equal(a, truth)
+        np.testing.assert_array_equal(b, truth)
+    np.testing.assert_array_equal(from_video.read(3), frames[3])
+
+
+def test_natural_sort(tmp_path):
+    names = ["frame10.png", "frame2.png", "frame1.png"]
+    assert sorted(names, key=natural_key) == ["frame1.png", "frame2.png", "frame10.png"]
+    for k, name in enumerate(names):
+        cv2.imwrite(str(tmp_path / name), np.full((8, 8), 10 * k, np.uint8))
+    source = open_frames(FrameSettings(), tmp_path)
+    assert [int(f[0, 0]) for f in source] == [20, 10, 0]
+
+
+def test_sixteen_bit_and_colour_conversion():
+    sixteen = np.array([[0, 257, 65535, 385]], np.uint16)
+    np.testing.assert_array_equal(to_gray8(sixteen, "x"), [[0, 1, 255, 1]])
+    colour = np.zeros((1, 1, 3), np.uint8)
+    colour[0, 0] = (255, 0, 0)  # pure blue in BGR
+    assert to_gray8(colour, "x")[0, 0] == round(0.114 * 255)
+    with pytest.raises(CondtrackError, match="unsupported pixel type float32"):
+        to_gray8(np.zeros((2, 2), np.float32), "frame 0")
+
+
+def test_sixteen_bit_colour_file(tmp_path):
+    image = np.zeros((4, 4, 3), np.uint16)
+    image[..., 1] = 65535  # green
+    cv2.imwrite(str(tmp_path / "a.tif"), image)
+    (frame,) = list(open_frames(FrameSettings(), tmp_path))
+    assert frame.dtype == np.uint8 and frame.shape == (4, 4)
+    assert frame[0, 0] == round(0.587 * 255)
+
+
+def test_bad_folders(tmp_path):
+    with pytest.raises(CondtrackError, match="no such file"):
+        open_frames(FrameSettings(), tmp_path / "missing")
+    with pytest.raises(CondtrackError, match="no image files"):
+        open_frames(FrameSettings(), tmp_path)
+    cv2.imwrite(str(tmp_path / "0.png"), np.zeros((8, 8), np.uint8))
+    cv2.imwrite(str(tmp_path / "1.png"), np.zeros((8, 9), np.uint8))
+    (tmp_path / "2.png").write_bytes(b"\x89PNG truncated")
+    (tmp_path / "notes.txt").write_text("hello")
+    with pytest.raises(CondtrackError, match="notes.txt.*not an image"):
+        open_frames(FrameSettings(non_image_files="refuse"), tmp_path)
+    source = open_frames(FrameSettings(), tmp_path)
+    frames = iter(source)
+    next(frames)
+    with pytest.raises(CondtrackError, match=r"frame 1 .*size 9x8 differs"):
+        next(frames)
+    with pytest.raises(CondtrackError, match=r"frame 2 .*not a readable image"):
+        source.read(2)
+
+
+def test_unreadable_video(tmp_path):
+    bogus = tmp_path / "clip.mp4"
+    bogus.write_bytes(b"not a video at all")
+    with pytest.raises(CondtrackError, match="clip.mp4: not a readable video"):
+        open_frames(FrameSettings(), bogus)
