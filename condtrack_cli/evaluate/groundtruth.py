@@ -1,0 +1,272 @@
+"""Ground truth for ``condtrack eval``: readers, TAP-Vid coordinates, and alignment with a prediction.
+
+Pixel convention (ours, every position here): x to the right, y down, in pixels,
+origin at the *centre* of the top-left pixel. TAP-Vid stores positions
+normalised to [0, 1] in raster coordinates, where the top-left *corner* of the
+image is (0, 0), the bottom-right corner (1, 1), and pixel centres sit at
+(j + 0.5) / W, (i + 0.5) / H. Hence x_ours = x_norm * W - 0.5 and
+y_ours = y_norm * H - 0.5 (``tapvid_to_pixels``, inverse ``pixels_to_tapvid``).
+
+Ground-truth CSV: a header naming at least ``point_id,frame,x,y,visible`` (any
+order, other columns ignored), one row per point per frame that has ground
+truth. A missing row means "no ground truth for that frame": the frame is not
+scored. ``visible`` is 0 or 1; x and y must be finite on visible rows and may be
+``nan`` on occluded ones.
+
+Matching a prediction to the ground truth (``align``) is by ``point_id``:
+predicted points absent from the GT are ignored; GT points absent from the
+prediction (no row at all) are not scored and are listed in
+``Aligned.missing_ids`` for the caller to report. Both sides are padded to the
+longer frame count: GT frames beyond the prediction count as frames without a
+predicted position (not visible, not within any threshold), predicted frames
+beyond the GT are not scored.
+"""
+
+from __future__ import annotations
+
+import csv
+import pickle
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.types import Tracks
+
+#: Columns a ground-truth CSV must have.
+GT_COLUMNS = ("point_id", "frame", "x", "y", "visible")
+
+
+@dataclass(frozen=True)
+class GroundTruth:
+    """Ground-truth tracks of G points over F frames, in our pixel convention.
+
+    point_id: (G,) int64, sorted, unique.
+    gt_xy: (G, F, 2) float64 pixels; NaN where unknown (and possibly where occluded).
+    visible: (G, F) bool; False where unknown.
+    known: (G, F) bool; False where the GT has no row for the frame (not scored).
+    """
+
+    point_id: np.ndarray
+    gt_xy: np.ndarray
+    visible: np.ndarray
+    known: np.ndarray
+
+
+@dataclass(frozen=True)
+class Aligned:
+    """A prediction and its ground truth on their P common points and F common frames.
+
+    point_id: (P,) int64 sorted. query_frame: (P,) int64, the first frame on which
+    the prediction has a position.
+    pred_xy: (P, F, 2), NaN where no position; pred_visible: (P, F) bool;
+    pred_cov: (P, F, 2, 2) px^2.
+    gt_xy: (P, F, 2); gt_visible, gt_known: (P, F) bool (as in ``GroundTruth``).
+    missing_ids: (M,) int64 GT points that the prediction does not have.
+    """
+
+    point_id: np.ndarray
+    query_frame: np.ndarray
+    pred_xy: np.ndarray
+    pred_visible: np.ndarray
+    pred_cov: np.ndarray
+    gt_xy: np.ndarray
+    gt_visible: np.ndarray
+    gt_known: np.ndarray
+    missing_ids: np.ndarray
+
+
+def tapvid_to_pixels(points: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(..., 2) TAP-Vid normalised (x, y) -> (..., 2) pixels in our convention (new array)."""
+    return np.asarray(points, np.float64) * np.array([width, height], np.float64) - 0.5
+
+
+def pixels_to_tapvid(xy: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(..., 2) pixels in our convention -> (..., 2) TAP-Vid normalised (x, y) (new array)."""
+    return (np.asarray(xy, np.float64) + 0.5) / np.array([width, height], np.float64)
+
+
+def _column(cells: np.ndarray, lines: np.ndarray, path: Path, name: str) -> np.ndarray:
+    """(N,) str cells of column ``name`` -> (N,) float64; CondtrackError naming the first bad line."""
+    try:
+        return cells.astype(np.float64)
+    except ValueError:
+        bad = next(i for i, cell in enumerate(cells) if not _is_float(cell))
+        raise CondtrackError(
+            f"{path}: line {lines[bad]}, column '{name}': {cells[bad]!r} is not a number"
+        ) from None
+
+
+def _is_float(cell: str) -> bool:
+    try:
+        float(cell)
+    except ValueError:
+        return False
+    return True
+
+
+def _refuse_rows(mask: np.ndarray, lines: np.ndarray, path: Path, what: str) -> None:
+    """CondtrackError naming the first line where ``mask`` (N,) is True."""
+    if mask.any():
+        raise CondtrackError(f"{path}: line {lines[np.argmax(mask)]}: {what}")
+
+
+def load_gt_csv(path: str | Path) -> GroundTruth:
+    """Read a ground-truth CSV (see the module docstring); F = last frame with a row + 1.
+
+    Raises CondtrackError naming the file, line and column on any problem.
+    """
+    path = Path(path)
+    try:
+        with path.open(newline="", encoding="utf-8") as f:
+            rows = list(csv.reader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as error:
+        raise CondtrackError(f"{path}: cannot read the ground truth ({error})") from None
+    header = [name.strip() for name in rows[0]] if rows else []
+    absent = [name for name in GT_COLUMNS if name not in header]
+    if absent:
+        raise CondtrackError(
+            f"{path}: ground-truth column(s) {', '.join(absent)} missing from the header "
+            f"(expected {','.join(GT_COLUMNS)})"
+        )
+    body = [(number, row) for number, row in enumerate(rows[1:], start=2) if row]
+    if not body:
+        raise CondtrackError(f"{path}: no ground-truth rows")
+    wrong = next(((number, row) for number, row in body if len(row) != len(header)), None)
+    if wrong is not None:
+        raise CondtrackError(f"{path}: line {wrong[0]} has {len(wrong[1])} fields, the header {len(header)}")
+    lines = np.array([number for number, _ in body])  # (N,) file line of each row
+    table = np.array([row for _, row in body], dtype=str)  # (N, C)
+    values = {name: _column(table[:, header.index(name)], lines, path, name) for name in GT_COLUMNS}
+    pid, frame, vis = values["point_id"], values["frame"], values["visible"]
+    xy = np.stack([values["x"], values["y"]], axis=-1)  # (N, 2)
+    _refuse_rows(~np.isfinite(pid) | (pid != np.round(pid)), lines, path, "point_id is not an integer")
+    _refuse_rows(~np.isfinite(frame) | (frame != np.round(frame)) | (frame < 0), lines, path,
+                 "frame is not a non-negative integer")
+    _refuse_rows((vis != 0) & (vis != 1), lines, path, "visible is not 0 or 1")
+    _refuse_rows(np.isinf(xy).any(axis=1), lines, path, "x or y is infinite")
+    _refuse_rows((vis == 1) & np.isnan(xy).any(axis=1), lines, path, "a visible row needs finite x and y")
+
+    point_id, point_index = np.unique(pid.astype(np.int64), return_inverse=True)
+    frame = frame.astype(np.int64)
+    n_points, n_frames = len(point_id), int(frame.max()) + 1
+    flat = point_index * n_frames + frame  # (N,) cell of each row
+    order = np.argsort(flat, kind="stable")
+    duplicate = np.zeros(len(flat), bool)
+    duplicate[order[1:]] = flat[order[1:]] == flat[order[:-1]]
+    _refuse_rows(duplicate, lines, path, "a second row for the same point_id and frame")
+
+    gt_xy = np.full((n_points, n_frames, 2), np.nan)
+    visible = np.zeros((n_points, n_frames), bool)
+    known = np.zeros((n_points, n_frames), bool)
+    gt_xy[point_index, frame] = xy
+    visible[point_index, frame] = vis == 1
+    known[point_index, frame] = True
+    return GroundTruth(point_id, gt_xy, visible, known)
+
+
+def _single_video(data: object, path: Path) -> dict:
+    """The one TAP-Vid video dict in ``data``: the dict itself, or the only entry of a dict or list of them."""
+    if isinstance(data, dict) and "points" in data:
+        return data
+    if isinstance(data, dict):
+        videos, names = list(data.values()), [str(name) for name in data]
+    elif isinstance(data, (list, tuple)):
+        videos, names = list(data), [f"#{i}" for i in range(len(data))]
+    else:
+        raise CondtrackError(f"{path}: not a TAP-Vid pickle (a {type(data).__name__}, expected a dict)")
+    if len(videos) != 1:
+        shown = ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
+        raise CondtrackError(
+            f"{path}: holds {len(videos)} videos ({shown}); evaluate one video at a time "
+            "(save the one you tracked in its own pickle)"
+        )
+    if not isinstance(videos[0], dict) or "points" not in videos[0]:
+        raise CondtrackError(f"{path}: the video {names[0]} is not a TAP-Vid video dict")
+    return videos[0]
+
+
+def _frame_size(video: object, path: Path) -> tuple[int, int]:
+    """(width, height) of a TAP-Vid ``video``: an (F, H, W, 3) array or a sequence of encoded frames."""
+    first = video[0] if isinstance(video, (list, tuple, np.ndarray)) and len(video) else None
+    if isinstance(first, bytes):
+        import cv2
+
+        image = cv2.imdecode(np.frombuffer(first, np.uint8), cv2.IMREAD_UNCHANGED)
+        if image is not None:
+            return int(image.shape[1]), int(image.shape[0])
+    elif np.ndim(video) == 4:
+        shape = np.shape(video)
+        return int(shape[2]), int(shape[1])
+    raise CondtrackError(f"{path}: 'video' is neither an (F, H, W, 3) array nor a list of encoded frames")
+
+
+def load_gt_tapvid(path: str | Path) -> GroundTruth:
+    """Read TAP-Vid ground truth from a pickle (one video) and convert it to our pixel convention.
+
+    The pickle holds a dict with ``video`` (F, H, W, 3) uint8 (or a list of
+    JPEG/PNG-encoded frames, as in TAP-Vid-Kinetics), ``points`` (P, F, 2)
+    normalised (x, y) and ``occluded`` (P, F) bool; or a dict (or list) of such
+    videos, of which there must be exactly one. Every frame of every point is
+    known; ``point_id`` is the row index 0..P-1. Unpickling runs code from the
+    file: read only pickles you trust.
+    """
+    path = Path(path)
+    try:
+        with path.open("rb") as f:
+            data = pickle.load(f)
+    except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ImportError, ValueError) as error:
+        raise CondtrackError(f"{path}: cannot read the TAP-Vid pickle ({error})") from None
+    video = _single_video(data, path)
+    for key in ("video", "points", "occluded"):
+        if key not in video:
+            raise CondtrackError(f"{path}: the TAP-Vid video has no '{key}' entry")
+    width, height = _frame_size(video["video"], path)
+    points = np.asarray(video["points"], np.float64)
+    occluded = np.asarray(video["occluded"]).astype(bool)
+    if points.ndim != 3 or points.shape[2] != 2 or occluded.shape != points.shape[:2]:
+        raise CondtrackError(
+            f"{path}: 'points' {points.shape} and 'occluded' {occluded.shape} are not (P, F, 2) and (P, F)"
+        )
+    gt_xy = tapvid_to_pixels(points, width, height)
+    return GroundTruth(np.arange(len(points), dtype=np.int64), gt_xy, ~occluded, np.ones(occluded.shape, bool))
+
+
+def _pad_frames(array: np.ndarray, n_frames: int, fill: float | bool) -> np.ndarray:
+    """(P, F, ...) -> (P, n_frames, ...) with ``fill`` after frame F (n_frames >= F)."""
+    pad = [(0, 0), (0, n_frames - array.shape[1])] + [(0, 0)] * (array.ndim - 2)
+    return np.pad(array, pad, constant_values=fill)
+
+
+def align(pred: Tracks, gt: GroundTruth) -> Aligned:
+    """Match ``pred`` to ``gt`` by point_id, on max(F_pred, F_gt) frames (see the module docstring).
+
+    A predicted point without any position counts as absent from the prediction,
+    as it would in a CSV. Raises CondtrackError when the prediction repeats a
+    point_id or shares none with the GT.
+    """
+    ids = np.asarray(pred.queries.point_id, np.int64)
+    if len(np.unique(ids)) != len(ids):
+        raise CondtrackError("the prediction has a repeated point_id")
+    present = pred.has_state.any(axis=1)  # (P_pred,)
+    common, pred_index, gt_index = np.intersect1d(ids[present], gt.point_id, return_indices=True)
+    if not len(common):
+        raise CondtrackError(
+            f"no point_id in common between the prediction ({int(present.sum())} points) "
+            f"and the ground truth ({len(gt.point_id)} points)"
+        )
+    pred_index = np.flatnonzero(present)[pred_index]
+    n_frames = max(pred.xy.shape[1], gt.gt_xy.shape[1])
+    pred_xy = _pad_frames(pred.xy[pred_index], n_frames, np.nan)
+    return Aligned(
+        point_id=common,
+        query_frame=np.isfinite(pred_xy).all(axis=-1).argmax(axis=1),
+        pred_xy=pred_xy,
+        pred_visible=_pad_frames(pred.visible[pred_index], n_frames, False),
+        pred_cov=_pad_frames(pred.cov[pred_index], n_frames, np.nan),
+        gt_xy=_pad_frames(gt.gt_xy[gt_index], n_frames, np.nan),
+        gt_visible=_pad_frames(gt.visible[gt_index], n_frames, False),
+        gt_known=_pad_frames(gt.known[gt_index], n_frames, False),
+        missing_ids=np.setdiff1d(gt.point_id, common),
+    )

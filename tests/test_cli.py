@@ -1,0 +1,140 @@
+"""The command line end to end: outputs per contract, errors as one line with no partial file."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from condtrack_cli import registry
+from condtrack_cli.cli import cli
+from condtrack_cli.output.read import read_tracks
+from condtrack_cli.output.write import CSV_COLUMNS
+
+
+def run_cli(*args: str) -> subprocess.CompletedProcess:
+    """Run the real console entry point (so the ``Error:`` handling is exercised)."""
+    return subprocess.run(
+        [sys.executable, "-c", "from condtrack_cli.cli import main; main()", *args],
+        capture_output=True, text=True, timeout=300,
+    )
+
+
+def test_track_writes_every_contract_field(shifted_folder, tmp_path):
+    folder, shifts = shifted_folder
+    h5 = tmp_path / "out.h5"
+    csv = tmp_path / "out.csv"
+    assert run_cli("track", str(folder), "-m", "stk", "-o", str(h5), "-q").returncode == 0
+    result = run_cli("track", str(folder), "-m", "stk", "-o", str(csv), "-q")
+    assert result.returncode == 0 and result.stdout == "" and result.stderr == ""
+    with h5py.File(h5) as f:
+        for key in ("schema_version", "condtrack_version", "config", "input", "width", "height", "n_frames", "fps", "coordinates"):
+            assert key in f.attrs, key
+        assert (f.attrs["width"], f.attrs["height"], f.attrs["n_frames"]) == (320, 256, 6)
+        p = f["tracks/xy"].shape[0]
+        assert f["tracks/xy"].shape == (p, 6, 2) and f["tracks/cov"].shape == (p, 6, 2, 2)
+        assert f["tracks/visible"].dtype == bool and f["tracks/visible"].shape == (p, 6)
+        assert f["tracks/method"].shape == (p,) and f["queries"].shape == (p, 3)
+        assert "measurements/z" in f and "measurements/R" in f
+        assert "motion:" in f.attrs["config"] and "method: stk" in f.attrs["config"]
+        assert np.isfinite(f["tracks/xy"][()]).all()  # every point queried on frame 0
+    lines = csv.read_text().splitlines()
+    assert lines[0] == ",".join(CSV_COLUMNS)
+    assert len(lines) == 1 + p * 6
+    first = lines[1].split(",")
+    assert first[4:7] == ["nan", "nan", "nan"] and first[8] == "stk"
+    tracks, _ = read_tracks(csv)
+    from_h5, _ = read_tracks(h5)
+    np.testing.assert_allclose(tracks.xy, from_h5.xy, atol=1e-6)
+    errors = np.linalg.norm(tracks.xy - (tracks.queries.xy[:, None] + shifts[None]), axis=-1)
+    assert np.median(errors) < 0.1
+
+
+def test_csv_on_stdout_without_output(shifted_folder):
+    folder, _ = shifted_folder
+    result = CliRunner().invoke(cli, ["track", str(folder), "-q"])
+    assert result.exit_code == 0
+    assert result.output.splitlines()[0] == ",".join(CSV_COLUMNS)
+
+
+def test_queries_file_tracks_each_point_from_its_frame(shifted_folder, tmp_path):
+    folder, shifts = shifted_folder
+    queries = tmp_path / "q.csv"
+    start = np.array([[100.0, 80.0], [200.0, 150.0]])
+    queries.write_text(f"point_id,frame,x,y\n7,2,{start[0,0] + shifts[2,0]},{start[0,1] + shifts[2,1]}\n3,0,{start[1,0]},{start[1,1]}\n")
+    out = tmp_path / "t.csv"
+    assert run_cli("track", str(folder), "-p", str(queries), "-o", str(out), "-q").returncode == 0
+    tracks, _ = read_tracks(out)
+    np.testing.assert_array_equal(tracks.queries.point_id, [3, 7])
+    np.testing.assert_array_equal(tracks.queries.frame, [0, 2])
+    assert np.isnan(tracks.xy[1, :2]).all() and np.isfinite(tracks.xy[1, 2:]).all()
+
+
+@pytest.mark.parametrize(
+    "content, message",
+    [
+        ("frame,x\n0,1\n", "missing column 'y'"),
+        ("frame,x,y\n0,abc,3\n", "row 2, column 'x': 'abc' is not a number"),
+        ("frame,x,y\n0,1000,3\n", "row 2: point (1000, 3) is outside"),
+        ("frame,x,y\n99,10,3\n", "row 2: frame 99 is outside the sequence"),
+    ],
+)
+def test_bad_queries_are_refused_without_output(shifted_folder, tmp_path, content, message):
+    folder, _ = shifted_folder
+    queries = tmp_path / "q.csv"
+    queries.write_text(content)
+    out = tmp_path / "t.h5"
+    result = run_cli("track", str(folder), "-p", str(queries), "-o", str(out))
+    assert result.returncode != 0
+    assert result.stderr.startswith("Error: ") and message in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert not out.exists() and not list(tmp_path.glob(".t.h5*"))
+
+
+def test_bad_config_and_output_are_refused_before_work(shifted_folder, tmp_path):
+    folder, _ = shifted_folder
+    result = run_cli("track", str(folder), "--set", "filter.stk.levels=0", "-o", str(tmp_path / "a.csv"))
+    assert result.returncode != 0 and "Error: config key 'filter.stk.levels'" in result.stderr
+    result = run_cli("track", str(folder), "-o", str(tmp_path / "missing" / "a.csv"))
+    assert result.returncode != 0 and "does not exist" in result.stderr
+    result = run_cli("track", str(folder), "-o", str(tmp_path / "a.txt"))
+    assert result.returncode != 0 and "unknown output format" in result.stderr
+    result = run_cli("track", str(folder), "-m", "kalman")
+    assert result.returncode != 0 and "valid:" in result.stderr
+    assert not list(tmp_path.glob("a.*"))
+
+
+def test_third_party_stage_registers_through_entry_points(tmp_path, monkeypatch):
+    package = tmp_path / "thirdparty_detect.py"
+    package.write_text(textwrap.dedent('''
+        import numpy as np
+        from condtrack_cli.config import StageSettings
+        from condtrack_cli.registry import register
+
+        class GridSettings(StageSettings):
+            step: int = 32
+
+        @register("detect", "grid", GridSettings, "a regular grid of points")
+        def grid(settings, gray):
+            ys, xs = np.mgrid[settings.step:gray.shape[0] - settings.step:settings.step,
+                              settings.step:gray.shape[1] - settings.step:settings.step]
+            return np.column_stack([xs.ravel(), ys.ravel()]).astype(float)
+    '''))
+    info = tmp_path / "thirdparty_detect-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: thirdparty-detect\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[condtrack.stages]\ngrid = thirdparty_detect\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry.reload_entry_points()
+    try:
+        assert "grid" in registry.names("detect")
+        result = CliRunner().invoke(cli, ["stages"])
+        assert "grid" in result.output and "a regular grid of points" in result.output
+    finally:
+        registry._STAGES["detect"].pop("grid", None)
+        registry.reload_entry_points()
