@@ -133,6 +133,15 @@ def stages(default_config: bool) -> None:
             click.echo(f"  {name:12s} {registry.get(kind, name).summary}")
 
 
+def _add_commands() -> None:
+    from condtrack_cli.evaluate.command import eval_command
+
+    cli.add_command(eval_command)
+
+
+_add_commands()
+
+
 def main() -> None:
     """Console entry point: one-line ``Error: ...`` and a non-zero exit on bad input."""
     try:

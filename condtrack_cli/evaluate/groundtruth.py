@@ -94,7 +94,7 @@ def _column(cells: np.ndarray, lines: np.ndarray, path: Path, name: str) -> np.n
     except ValueError:
         bad = next(i for i, cell in enumerate(cells) if not _is_float(cell))
         raise CondtrackError(
-            f"{path}: line {lines[bad]}, column '{name}': {cells[bad]!r} is not a number"
+            f"{path}: line {lines[bad]}, column '{name}': {str(cells[bad])!r} is not a number"
         ) from None
 
 

@@ -1,0 +1,93 @@
+"""``condtrack eval PRED GT``: score a condtrack output against ground truth (TAP-Vid metrics)."""
+
+from __future__ import annotations
+
+import json
+
+import click
+
+from condtrack_cli.evaluate.groundtruth import align, load_gt_csv, load_gt_tapvid
+from condtrack_cli.evaluate.metrics import METRIC_KEYS, QUERY_MODES, tapvid_metrics
+
+_GT_READERS = {"csv": load_gt_csv, "tapvid": load_gt_tapvid}
+
+
+def _format(key: str, value: float | int | None) -> str:
+    """One metric for the table: fractions as percentages, pixels with 2 decimals, counts as ints."""
+    if value is None:
+        return "n/a"
+    if key in ("n_points", "n_frames"):
+        return str(value)
+    if key == "median_err":
+        return f"{value:.2f} px"
+    return f"{100 * value:.1f} %"
+
+
+def _print_table(result: dict, notes: list[str], title: str) -> None:
+    """The title line, the metrics as a rich table, then the notes, on stdout."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table()
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    for key in METRIC_KEYS:
+        table.add_row(key, _format(key, result[key]))
+    console = Console(highlight=False)
+    console.print(title, markup=False)
+    console.print(table)
+    for note in notes:
+        console.print(note, markup=False)
+
+
+@click.command("eval")
+@click.argument("pred", type=click.Path(dir_okay=False))
+@click.argument("gt", type=click.Path(dir_okay=False))
+@click.option("--query-mode", type=click.Choice(QUERY_MODES), default="first", show_default=True,
+              help="first: score the frames after each point's query frame; strided: every frame but it.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
+@click.option("--gt-format", type=click.Choice(tuple(_GT_READERS)), default="csv", show_default=True,
+              help="csv: point_id,frame,x,y,visible; tapvid: a TAP-Vid pickle holding one video.")
+def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: str) -> None:
+    """Score PRED (a condtrack .csv or .h5) against the ground truth GT with the TAP-Vid metrics.
+
+    \b
+    Metrics (TAP-Vid, Doersch et al. 2022, in pixels of the sequence):
+      pts_within_x  fraction of GT-visible scored frames predicted strictly
+                    closer than x px (x = 1, 2, 4, 8, 16); delta_avg: their mean
+      jaccard_x     TP / (GT visible + FP); AJ: their mean
+      OA            fraction of scored frames with the right visibility
+      median_err    median distance on GT-visible scored frames (px)
+      cov95         fraction of GT-visible scored positions inside the
+                    predicted 95% ellipse (ideal 0.95)
+    A point's query frame is its first predicted frame. GT CSV rows that are
+    absent are not scored. OA, AJ and jaccard_x are n/a (null) when the GT has
+    no occluded scored frame: there is then no visibility to judge. Points are
+    matched by point_id; GT points missing from PRED are not scored (their count
+    is reported, on stderr with --json). Frames where PRED has no position count
+    as not visible and not within any threshold.
+    """
+    from condtrack_cli.output.read import read_tracks
+
+    truth = _GT_READERS[gt_format](gt)
+    tracks, _ = read_tracks(pred)
+    data = align(tracks, truth)
+    result = tapvid_metrics(
+        data.pred_xy, data.pred_visible, data.pred_cov, data.gt_xy, data.gt_visible, data.gt_known,
+        data.query_frame, query_mode,
+    )
+    notes = []
+    if len(data.missing_ids):
+        shown = ", ".join(str(i) for i in data.missing_ids[:10]) + (", ..." if len(data.missing_ids) > 10 else "")
+        notes.append(f"note: {len(data.missing_ids)} GT point(s) missing from {pred}, not scored: {shown}")
+    if truth.gt_xy.shape[1] > tracks.xy.shape[1]:
+        notes.append(
+            f"note: the GT has {truth.gt_xy.shape[1]} frames, {pred} only {tracks.xy.shape[1]}; "
+            "the GT frames beyond count as not predicted"
+        )
+    if as_json:
+        click.echo(json.dumps(result))
+        for note in notes:
+            click.echo(note, err=True)
+    else:
+        _print_table(result, notes, f"{pred} vs {gt}, '{query_mode}' query mode")

@@ -1,0 +1,444 @@
+"""Evaluation: TAP-Vid metrics on hand-computed tiny cases, GT readers, alignment, ``condtrack eval``."""
+
+from __future__ import annotations
+
+import json
+import pickle
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.evaluate import (
+    METRIC_KEYS,
+    GroundTruth,
+    align,
+    coverage_inside,
+    load_gt_csv,
+    load_gt_tapvid,
+    pixels_to_tapvid,
+    tapvid_metrics,
+    tapvid_to_pixels,
+)
+from condtrack_cli.evaluate.command import eval_command
+from condtrack_cli.evaluate.metrics import CHI2_2DOF
+from condtrack_cli.types import Queries, Tracks
+
+NAN, INF = np.nan, np.inf
+
+# Two points, four frames. GT position of point p on frame f: (10 + f, 20 + 2p).
+# Point 0 (query frame 0):
+#   f0 query frame (never scored)         pred exact, visible
+#   f1 GT occluded, pred visible  d=0.5   -> FP at every threshold, OA wrong
+#   f2 GT visible, pred occluded  d=1.5   -> within 2.., not TP, OA wrong; inside cov I
+#   f3 GT visible, pred visible   d=1.0   -> exactly 1: NOT within 1, within 2..; outside cov 0.01 I
+# Point 1 (query frame 1, its first predicted frame):
+#   f0 GT visible, no prediction          -> strided only: not within, not visible, cov not counted
+#   f1 query frame                        pred exact, visible
+#   f2 no GT row                          pred far (d=100) and visible: never scored
+#   f3 GT visible, pred visible   d=3.0   -> within 4..; inside its infinite cov
+OFFSETS = np.array([
+    [[0, 0], [0.5, 0], [0, -1.5], [-1, 0]],
+    [[NAN, NAN], [0, 0], [100, 0], [0, 3]],
+])
+PRED_VISIBLE = np.array([[1, 1, 0, 1], [0, 1, 1, 1]], bool)
+GT_VISIBLE = np.array([[1, 0, 1, 1], [1, 1, 0, 1]], bool)
+GT_KNOWN = np.array([[1, 1, 1, 1], [1, 1, 0, 1]], bool)
+QUERY_FRAME = np.array([0, 1])
+
+EXPECTED = {
+    "first": {
+        # scored: p0 f1..f3, p1 f3; GT-visible scored distances 1.5, 1.0, 3.0
+        "pts_within_1": 0.0, "pts_within_2": 2 / 3, "pts_within_4": 1.0, "pts_within_8": 1.0, "pts_within_16": 1.0,
+        "delta_avg": 11 / 15,
+        # TP/(3 + FP): x=1: 0/(3+3); x=2: 1/(3+2); x>=4: 2/(3+1)
+        "jaccard_1": 0.0, "jaccard_2": 0.2, "jaccard_4": 0.5, "jaccard_8": 0.5, "jaccard_16": 0.5, "AJ": 0.34,
+        "OA": 2 / 4, "median_err": 1.5, "cov95": 2 / 3, "n_points": 2, "n_frames": 4,
+    },
+    "strided": {
+        # scored: p0 f1..f3, p1 f0 and f3; GT-visible scored distances 1.5, 1.0, (none), 3.0
+        "pts_within_1": 0.0, "pts_within_2": 0.5, "pts_within_4": 0.75, "pts_within_8": 0.75, "pts_within_16": 0.75,
+        "delta_avg": 0.55,
+        # TP/(4 + FP): x=1: 0/(4+3); x=2: 1/(4+2); x>=4: 2/(4+1)
+        "jaccard_1": 0.0, "jaccard_2": 1 / 6, "jaccard_4": 0.4, "jaccard_8": 0.4, "jaccard_16": 0.4, "AJ": 41 / 150,
+        "OA": 2 / 5, "median_err": 2.25, "cov95": 2 / 3, "n_points": 2, "n_frames": 4,
+    },
+}
+
+
+def gt_xy() -> np.ndarray:
+    """(2, 4, 2) GT positions of the fixture."""
+    frames, points = np.meshgrid(np.arange(4.0), np.arange(2.0))
+    return np.stack([10 + frames, 20 + 2 * points], axis=-1)
+
+
+def pred_cov() -> np.ndarray:
+    """(2, 4, 2, 2) predicted covariances of the fixture."""
+    cov = np.broadcast_to(np.eye(2), (2, 4, 2, 2)).copy()
+    cov[0, 3] = 0.01 * np.eye(2)
+    cov[1, 0] = NAN
+    cov[1, 3] = np.diag([INF, INF])
+    return cov
+
+
+def fixture_metrics(mode: str) -> dict:
+    return tapvid_metrics(gt_xy() + OFFSETS, PRED_VISIBLE, pred_cov(), gt_xy(), GT_VISIBLE, GT_KNOWN, QUERY_FRAME, mode)
+
+
+@pytest.mark.parametrize("mode", ["first", "strided"])
+def test_hand_computed_metrics(mode):
+    result = fixture_metrics(mode)
+    assert tuple(result) == METRIC_KEYS
+    assert result == pytest.approx(EXPECTED[mode], abs=1e-12)
+    assert isinstance(result["n_points"], int) and isinstance(result["n_frames"], int)
+
+
+def test_first_and_strided_differ():
+    assert fixture_metrics("first")["OA"] != fixture_metrics("strided")["OA"]
+
+
+def test_inputs_not_mutated():
+    pred = gt_xy() + OFFSETS
+    cov = pred_cov()
+    before = pred.copy(), cov.copy()
+    tapvid_metrics(pred, PRED_VISIBLE, cov, gt_xy(), GT_VISIBLE, GT_KNOWN, QUERY_FRAME, "strided")
+    np.testing.assert_array_equal(pred, before[0])
+    np.testing.assert_array_equal(cov, before[1])
+
+
+def test_distance_on_threshold_is_not_within():
+    # distances exactly 2, 4 and 16 px: each is within the next threshold only
+    gt = np.zeros((1, 4, 2))
+    pred = np.array([[[0, 0], [0, 2], [4, 0], [0, -16]]], float)
+    visible = np.ones((1, 4), bool)
+    result = tapvid_metrics(pred, visible, None, gt, visible, visible, np.array([0]), "first")
+    assert [result[f"pts_within_{x}"] for x in (1, 2, 4, 8, 16)] == pytest.approx([0, 0, 1 / 3, 2 / 3, 2 / 3])
+    assert result["cov95"] is None
+
+
+def test_all_visible_gt_leaves_visibility_metrics_null():
+    gt = np.zeros((1, 3, 2))
+    pred = np.array([[[0, 0], [0.5, 0], [3, 0]]])
+    ones = np.ones((1, 3), bool)
+    result = tapvid_metrics(pred, ~ones, None, gt, ones, ones, np.array([0]), "first")
+    assert result["OA"] is None and result["AJ"] is None
+    assert all(result[f"jaccard_{x}"] is None for x in (1, 2, 4, 8, 16))
+    assert result["pts_within_1"] == 0.5 and result["pts_within_4"] == 1.0
+    assert result["median_err"] == pytest.approx(1.75)
+
+
+def test_nothing_scored_gives_nulls():
+    one = np.ones((1, 1), bool)
+    result = tapvid_metrics(np.zeros((1, 1, 2)), one, None, np.zeros((1, 1, 2)), one, one, np.array([0]), "first")
+    assert {k: v for k, v in result.items() if v is not None} == {"n_points": 1, "n_frames": 1}
+
+
+def test_median_is_null_when_most_frames_have_no_prediction():
+    gt = np.zeros((1, 4, 2))
+    pred = np.array([[[0, 0], [1, 0], [NAN, NAN], [NAN, NAN]]])
+    ones = np.ones((1, 4), bool)
+    result = tapvid_metrics(pred, ones, None, gt, ones, ones, np.array([0]), "strided")
+    assert result["median_err"] is None
+    assert result["pts_within_2"] == pytest.approx(1 / 3)
+
+
+def test_coverage_inside():
+    correlated = np.array([[2.0, 1.0], [1.0, 2.0]])
+    cov = np.array([correlated, correlated, np.diag([INF, INF]), np.diag([INF, 1.0]), np.full((2, 2), NAN),
+                    np.zeros((2, 2)), np.array([[1.0, 2.0], [2.0, 1.0]]), np.eye(2)])
+    error = np.array([[2, 2], [3, -3], [1e6, 1e6], [0, 1e3], [0, 0], [0, 0], [0, 0], [NAN, NAN]], float)
+    counted, inside = coverage_inside(error, cov)
+    # Mahalanobis^2: (2, 2) -> 8/3 inside; (3, -3) -> 18 outside; any infinite entry: unbounded, inside;
+    # NaN cov, zero cov, indefinite cov, no prediction: no ellipse, not counted
+    np.testing.assert_array_equal(counted, [1, 1, 1, 1, 0, 0, 0, 0])
+    np.testing.assert_array_equal(inside, [1, 0, 1, 1, 0, 0, 0, 0])
+    m2 = [e @ np.linalg.solve(correlated, e) for e in error[:2]]
+    assert m2 == pytest.approx([8 / 3, 18]) and m2[0] <= CHI2_2DOF < m2[1]
+
+
+def test_chi2_quantile():
+    # 1 - exp(-q / 2) = 0.95
+    assert 1 - np.exp(-CHI2_2DOF / 2) == pytest.approx(0.95, abs=1e-15)
+
+
+def test_unknown_mode_refused():
+    one = np.ones((1, 1), bool)
+    with pytest.raises(ValueError, match="strided"):
+        tapvid_metrics(np.zeros((1, 1, 2)), one, None, np.zeros((1, 1, 2)), one, one, np.array([0]), "all")
+
+
+# ---------------------------------------------------------------- TAP-Vid coordinates
+
+
+def test_tapvid_conversion_values_and_round_trip():
+    width, height = 8, 6
+    norm = np.array([[0.5 / 8, 0.5 / 6], [0.5, 0.5], [0.0, 1.0]])
+    pixels = tapvid_to_pixels(norm, width, height)
+    np.testing.assert_allclose(pixels, [[0, 0], [3.5, 2.5], [-0.5, 5.5]], atol=1e-12)
+    np.testing.assert_allclose(pixels_to_tapvid(pixels, width, height), norm, atol=1e-15)
+    xy = np.array([[[0.0, 0.0], [7.0, 5.0], [-0.5, -0.5], [1.25, 3.75]]])
+    np.testing.assert_allclose(tapvid_to_pixels(pixels_to_tapvid(xy, width, height), width, height), xy, atol=1e-12)
+
+
+def tapvid_video(n_points=2, n_frames=3, height=6, width=8) -> dict:
+    points = np.linspace(0.1, 0.9, n_points * n_frames * 2).reshape(n_points, n_frames, 2).astype(np.float32)
+    occluded = np.zeros((n_points, n_frames), bool)
+    occluded[0, 1] = True
+    return {"video": np.zeros((n_frames, height, width, 3), np.uint8), "points": points, "occluded": occluded}
+
+
+def dump(path, data):
+    path.write_bytes(pickle.dumps(data))
+    return path
+
+
+@pytest.mark.parametrize("wrap", ["bare", "dict", "list"])
+def test_load_gt_tapvid(tmp_path, wrap):
+    video = tapvid_video()
+    data = {"bare": video, "dict": {"bear": video}, "list": [video]}[wrap]
+    gt = load_gt_tapvid(dump(tmp_path / "gt.pkl", data))
+    np.testing.assert_array_equal(gt.point_id, [0, 1])
+    np.testing.assert_allclose(gt.gt_xy, video["points"].astype(float) * [8, 6] - 0.5)
+    np.testing.assert_array_equal(gt.visible, ~video["occluded"])
+    assert gt.known.all()
+
+
+def test_load_gt_tapvid_encoded_frames(tmp_path):
+    video = tapvid_video(height=5, width=7)
+    png = cv2.imencode(".png", np.zeros((5, 7, 3), np.uint8))[1].tobytes()
+    video["video"] = [png] * 3
+    gt = load_gt_tapvid(dump(tmp_path / "gt.pkl", [video]))
+    np.testing.assert_allclose(gt.gt_xy, video["points"].astype(float) * [7, 5] - 0.5)
+
+
+def test_load_gt_tapvid_refuses_several_videos_and_bad_files(tmp_path):
+    with pytest.raises(CondtrackError, match="holds 2 videos"):
+        load_gt_tapvid(dump(tmp_path / "two.pkl", {"a": tapvid_video(), "b": tapvid_video()}))
+    broken = tapvid_video()
+    del broken["occluded"]
+    with pytest.raises(CondtrackError, match="'occluded'"):
+        load_gt_tapvid(dump(tmp_path / "broken.pkl", broken))
+    (tmp_path / "junk.pkl").write_bytes(b"not a pickle")
+    with pytest.raises(CondtrackError, match="junk.pkl"):
+        load_gt_tapvid(tmp_path / "junk.pkl")
+
+
+# ---------------------------------------------------------------- GT CSV
+
+
+def write_gt_csv(path, rows, header="point_id,frame,x,y,visible"):
+    path.write_text(header + "\n" + "".join(row + "\n" for row in rows))
+    return path
+
+
+def fixture_gt_rows() -> list[str]:
+    xy = gt_xy()
+    return [
+        f"{p},{f},{xy[p, f, 0]},{xy[p, f, 1]},{int(GT_VISIBLE[p, f])}"
+        for p in range(2) for f in range(4) if GT_KNOWN[p, f]
+    ]
+
+
+def test_load_gt_csv(tmp_path):
+    gt = load_gt_csv(write_gt_csv(tmp_path / "gt.csv", fixture_gt_rows()))
+    np.testing.assert_array_equal(gt.point_id, [0, 1])
+    np.testing.assert_array_equal(gt.known, GT_KNOWN)
+    np.testing.assert_array_equal(gt.visible, GT_VISIBLE & GT_KNOWN)
+    np.testing.assert_array_equal(gt.gt_xy[GT_KNOWN], gt_xy()[GT_KNOWN])
+    assert np.isnan(gt.gt_xy[~GT_KNOWN]).all()
+
+
+def test_load_gt_csv_column_order_extra_columns_and_nan_when_occluded(tmp_path):
+    path = write_gt_csv(tmp_path / "gt.csv", ["0,7,0,nan,nan,a", "1,7,1,4.5,5.5,b"], "visible,point_id,frame,x,y,note")
+    gt = load_gt_csv(path)
+    np.testing.assert_array_equal(gt.point_id, [7])
+    np.testing.assert_array_equal(gt.known, [[1, 1]])
+    np.testing.assert_array_equal(gt.visible, [[0, 1]])
+    np.testing.assert_array_equal(gt.gt_xy[0, 1], [4.5, 5.5])
+
+
+@pytest.mark.parametrize(
+    ("rows", "header", "message"),
+    [
+        (["0,0,1,2,1"], "point_id,frame,x,visible", "column\\(s\\) y missing"),
+        (["0,0,1,2,1", "0,1,abc,2,1"], None, "line 3, column 'x': 'abc' is not a number"),
+        (["0,0,1,2,2"], None, "line 2: visible is not 0 or 1"),
+        (["0,0.5,1,2,1"], None, "line 2: frame is not a non-negative integer"),
+        (["0,-1,1,2,1"], None, "line 2: frame is not a non-negative integer"),
+        (["0.5,0,1,2,1"], None, "line 2: point_id is not an integer"),
+        (["0,0,nan,2,1"], None, "line 2: a visible row needs finite x and y"),
+        (["0,0,inf,2,0"], None, "line 2: x or y is infinite"),
+        (["0,0,1,2,1", "1,0,1,2,1", "0,0,1,2,1"], None, "line 4: a second row for the same point_id and frame"),
+        (["0,0,1,2"], None, "line 2 has 4 fields"),
+        ([], None, "no ground-truth rows"),
+    ],
+)
+def test_load_gt_csv_errors(tmp_path, rows, header, message):
+    path = write_gt_csv(tmp_path / "gt.csv", rows, header or "point_id,frame,x,y,visible")
+    with pytest.raises(CondtrackError, match=message) as error:
+        load_gt_csv(path)
+    assert "gt.csv" in str(error.value)
+
+
+def test_load_gt_csv_missing_file(tmp_path):
+    with pytest.raises(CondtrackError, match="nope.csv"):
+        load_gt_csv(tmp_path / "nope.csv")
+
+
+# ---------------------------------------------------------------- alignment
+
+
+def make_tracks(point_id, xy, visible, cov=None) -> Tracks:
+    xy = np.asarray(xy, float)
+    n_points, n_frames = xy.shape[:2]
+    has = np.isfinite(xy).all(axis=-1)
+    first = has.argmax(axis=1)
+    cov = np.broadcast_to(np.eye(2), (n_points, n_frames, 2, 2)).copy() if cov is None else cov
+    queries = Queries(np.asarray(point_id, np.int64), first, xy[np.arange(n_points), first])
+    return Tracks(queries, xy, cov, np.asarray(visible, bool), np.where(has, 2, -1).astype(np.int8),
+                  np.full_like(xy, NAN), np.full_like(cov, NAN))
+
+
+def test_align_matches_ids_and_pads_frames():
+    # pred: ids 5, 9 (not in GT), 2 (no position at all: absent), 3 frames
+    pred_xy = np.full((3, 3, 2), NAN)
+    pred_xy[0, 1:] = [[1, 1], [2, 2]]
+    pred_xy[1] = 0.0
+    pred = make_tracks([5, 9, 2], pred_xy, np.isfinite(pred_xy[..., 0]))
+    # GT: ids 2, 5, 7 over 4 frames
+    gt_arr = np.arange(3 * 4 * 2, dtype=float).reshape(3, 4, 2)
+    gt = GroundTruth(np.array([2, 5, 7]), gt_arr, np.ones((3, 4), bool), np.ones((3, 4), bool))
+    data = align(pred, gt)
+    np.testing.assert_array_equal(data.point_id, [5])
+    np.testing.assert_array_equal(data.missing_ids, [2, 7])
+    np.testing.assert_array_equal(data.query_frame, [1])
+    assert data.pred_xy.shape == (1, 4, 2) and np.isnan(data.pred_xy[0, [0, 3]]).all()
+    np.testing.assert_array_equal(data.pred_visible, [[0, 1, 1, 0]])
+    assert np.isnan(data.pred_cov[0, 3]).all()
+    np.testing.assert_array_equal(data.gt_xy, gt_arr[[1]])
+
+
+def test_align_pads_gt_beyond_its_frames():
+    pred = make_tracks([0], np.zeros((1, 3, 2)), np.ones((1, 3), bool))
+    gt = GroundTruth(np.array([0]), np.zeros((1, 2, 2)), np.ones((1, 2), bool), np.ones((1, 2), bool))
+    data = align(pred, gt)
+    np.testing.assert_array_equal(data.gt_known, [[1, 1, 0]])
+    np.testing.assert_array_equal(data.gt_visible, [[1, 1, 0]])
+
+
+def test_align_errors():
+    gt = GroundTruth(np.array([0]), np.zeros((1, 2, 2)), np.ones((1, 2), bool), np.ones((1, 2), bool))
+    with pytest.raises(CondtrackError, match="no point_id in common"):
+        align(make_tracks([4], np.zeros((1, 2, 2)), np.ones((1, 2), bool)), gt)
+    with pytest.raises(CondtrackError, match="repeated point_id"):
+        align(make_tracks([0, 0], np.zeros((2, 2, 2)), np.ones((2, 2), bool)), gt)
+
+
+# ---------------------------------------------------------------- command line
+
+
+def write_pred_csv(path, point_id, xy, visible, cov):
+    """A condtrack CSV in the documented layout (DESIGN.md §5), one row per frame with a position."""
+    lines = ["point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method"]
+    for p, f in zip(*np.nonzero(np.isfinite(xy).all(axis=-1))):
+        c = cov[p, f]
+        lines.append(f"{point_id[p]},{f},{float(xy[p, f, 0])!r},{float(xy[p, f, 1])!r},{c[0, 0]},{c[0, 1]},{c[1, 1]},"
+                     f"{int(visible[p, f])},clf")
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+@pytest.fixture
+def files(tmp_path):
+    pred = write_pred_csv(tmp_path / "pred.csv", [0, 1], gt_xy() + OFFSETS, PRED_VISIBLE, pred_cov())
+    gt = write_gt_csv(tmp_path / "gt.csv", fixture_gt_rows())
+    return pred, gt
+
+
+@pytest.mark.parametrize("mode", ["first", "strided"])
+def test_cli_json(files, mode):
+    pred, gt = files
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--json", "--query-mode", mode])
+    assert result.exit_code == 0, result.output
+    values = json.loads(result.stdout)
+    assert list(values) == list(METRIC_KEYS)
+    assert values == pytest.approx(EXPECTED[mode], abs=1e-12)
+    assert result.stderr == ""
+
+
+def test_cli_table_and_missing_points(files, tmp_path):
+    pred, _ = files
+    gt = write_gt_csv(tmp_path / "gt_more.csv", fixture_gt_rows() + ["8,0,1,1,1", "8,5,1,1,0"])
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt)])
+    assert result.exit_code == 0, result.output
+    assert "delta_avg" in result.stdout and "cov95" in result.stdout
+    assert "1 GT point(s) missing" in result.stdout
+    assert "the GT has 6 frames" in result.stdout
+
+
+def test_cli_json_notes_on_stderr(files, tmp_path):
+    pred, _ = files
+    gt = write_gt_csv(tmp_path / "gt_more.csv", fixture_gt_rows() + ["8,0,1,1,1"])
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--json"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout) == pytest.approx(EXPECTED["first"], abs=1e-12)
+    assert "1 GT point(s) missing" in result.stderr
+
+
+def test_cli_all_visible_gt_prints_null(tmp_path):
+    pred = write_pred_csv(tmp_path / "pred.csv", [3], np.zeros((1, 3, 2)), np.ones((1, 3), bool),
+                          np.broadcast_to(np.eye(2), (1, 3, 2, 2)))
+    gt = write_gt_csv(tmp_path / "gt.csv", ["3,0,0,0,1", "3,1,0,0.5,1", "3,2,0,0,1"])
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--json"])
+    values = json.loads(result.stdout)
+    assert values["OA"] is None and values["AJ"] is None and values["jaccard_4"] is None
+    assert values["pts_within_1"] == 1.0 and values["cov95"] == 1.0
+    assert "null" in result.stdout
+
+
+def test_cli_tapvid(tmp_path):
+    video = tapvid_video()
+    gt_path = dump(tmp_path / "gt.pkl", {"bear": video})
+    xy = tapvid_to_pixels(video["points"], 8, 6)
+    pred = write_pred_csv(tmp_path / "pred.csv", [0, 1], xy, ~video["occluded"], np.broadcast_to(np.eye(2), (2, 3, 2, 2)))
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt_path), "--gt-format", "tapvid", "--json"])
+    assert result.exit_code == 0, result.output
+    values = json.loads(result.stdout)
+    assert values["delta_avg"] == 1.0 and values["OA"] == 1.0 and values["AJ"] == 1.0
+
+
+def test_cli_errors_name_the_file(files, tmp_path):
+    pred, gt = files
+    bad_gt = write_gt_csv(tmp_path / "bad.csv", ["0,0,1,1"], "point_id,frame,x,y")
+    result = CliRunner().invoke(eval_command, [str(pred), str(bad_gt)])
+    assert isinstance(result.exception, CondtrackError)
+    assert "bad.csv" in str(result.exception) and "visible" in str(result.exception)
+    result = CliRunner().invoke(eval_command, [str(tmp_path / "none.csv"), str(gt)])
+    assert isinstance(result.exception, CondtrackError) and "none.csv" in str(result.exception)
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--query-mode", "all"])
+    assert result.exit_code == 2
+
+
+def test_cli_hdf5_prediction(files, tmp_path):
+    import h5py
+
+    from condtrack_cli import SCHEMA_VERSION
+
+    _, gt = files
+    xy = gt_xy() + OFFSETS
+    has = np.isfinite(xy).all(axis=-1)
+    first = has.argmax(axis=1)
+    path = tmp_path / "pred.h5"
+    with h5py.File(path, "w") as f:
+        f.attrs["schema_version"] = SCHEMA_VERSION
+        f["tracks/point_id"] = np.array([0, 1], np.int64)
+        f["tracks/xy"] = xy
+        f["tracks/cov"] = pred_cov()
+        f["tracks/visible"] = PRED_VISIBLE
+        f["tracks/method_code"] = np.where(has, 2, -1).astype(np.int8)
+        f["queries"] = np.column_stack([first, xy[[0, 1], first]]).astype(float)
+    result = CliRunner().invoke(eval_command, [str(path), str(gt), "--json", "--query-mode", "strided"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout) == pytest.approx(EXPECTED["strided"], abs=1e-12)
