@@ -6,8 +6,9 @@ import json
 
 import click
 
-from condtrack_cli.evaluate.groundtruth import align, load_gt_csv, load_gt_tapvid
-from condtrack_cli.evaluate.metrics import METRIC_KEYS, QUERY_MODES, tapvid_metrics
+from condtrack_cli.evaluate.groundtruth import load_gt_csv, load_gt_tapvid
+from condtrack_cli.evaluate.metrics import METRIC_KEYS, QUERY_MODES
+from condtrack_cli.evaluate.score import score_tracks
 
 _GT_READERS = {"csv": load_gt_csv, "tapvid": load_gt_tapvid}
 
@@ -71,11 +72,7 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
 
     truth = _GT_READERS[gt_format](gt)
     tracks, _ = read_tracks(pred)
-    data = align(tracks, truth)
-    result = tapvid_metrics(
-        data.pred_xy, data.pred_visible, data.pred_cov, data.gt_xy, data.gt_visible, data.gt_known,
-        data.query_frame, query_mode,
-    )
+    result, data = score_tracks(tracks, truth, query_mode)
     notes = []
     if len(data.missing_ids):
         shown = ", ".join(str(i) for i in data.missing_ids[:10]) + (", ..." if len(data.missing_ids) > 10 else "")

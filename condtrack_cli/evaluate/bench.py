@@ -1,0 +1,210 @@
+"""The benchmark: every method on every sequence with ground truth, plus a speed case.
+
+``make bench`` runs ``python -m condtrack_cli.evaluate.bench --out bench/results.md``.
+Each method runs as its own ``condtrack track`` process (whole-process wall time
+and peak resident memory, read with ``os.wait4``), and is scored with the same
+code as ``condtrack eval``. Speed is a ratio to STK (OpenCV's pyramidal
+Lucas-Kanade) measured in the same run.
+
+Sequences: ``sample_sequences/*`` (queries.csv and tracks.csv shipped) and
+``../shared/data/*`` with a tracks.csv (skipped with a message when absent);
+for those, the queries are each track's first observation, over tracks with at
+least 3 observations, at most ``--max-points`` of them (every k-th track, k
+the smallest stride that fits) to bound the run time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from condtrack_cli import registry
+from condtrack_cli.evaluate.groundtruth import GroundTruth, load_gt_csv
+from condtrack_cli.evaluate.score import score_tracks
+from condtrack_cli.output.read import read_tracks
+
+METHODS = ("stk", "mdr", "clf", "cnlf", "auto")
+REPO = Path(__file__).resolve().parents[2]
+
+
+def gt_queries(truth: GroundTruth, min_observations: int = 3, max_points: int | None = None) -> np.ndarray:
+    """(Q, 4) rows point_id, frame, x, y: each kept track's first observation.
+
+    Tracks with fewer than ``min_observations`` GT rows are dropped; when more
+    than ``max_points`` remain, every k-th is kept (k the smallest that fits).
+    """
+    counts = truth.known.sum(axis=1)
+    keep = np.flatnonzero(counts >= min_observations)
+    if max_points is not None and len(keep) > max_points:
+        keep = keep[:: int(np.ceil(len(keep) / max_points))]
+    first = truth.known[keep].argmax(axis=1)
+    xy = truth.gt_xy[keep, first]
+    return np.column_stack([truth.point_id[keep], first, xy])
+
+
+def write_queries(rows: np.ndarray, path: Path) -> None:
+    """Write (Q, 4) query rows as the ``point_id,frame,x,y`` CSV that ``track -p`` reads."""
+    lines = ["point_id,frame,x,y"] + [f"{int(p)},{int(f)},{x:.4f},{y:.4f}" for p, f, x, y in rows]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def run_track(args: list[str]) -> tuple[float, float, int, str]:
+    """Run ``condtrack track ARGS``: (wall seconds, peak RSS MiB, exit code, stderr's last line)."""
+    started = time.perf_counter()
+    process = subprocess.Popen(
+        [sys.executable, "-m", "condtrack_cli", "track", *args, "-q"], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
+    )
+    stderr = process.stderr.read().decode()
+    _, status, usage = os.wait4(process.pid, 0)
+    process.returncode = os.waitstatus_to_exitcode(status)
+    seconds = time.perf_counter() - started
+    return seconds, usage.ru_maxrss / 1024.0, process.returncode, (stderr.strip().splitlines() or [""])[-1]
+
+
+def sequences(max_points: int, work: Path) -> list[tuple[str, Path, Path, Path]]:
+    """(name, frames folder, queries CSV, GT CSV) of every sequence with ground truth."""
+    found = []
+    for folder in sorted((REPO / "sample_sequences").glob("*/")):
+        if (folder / "tracks.csv").is_file() and (folder / "queries.csv").is_file():
+            found.append((f"sample/{folder.name}", folder, folder / "queries.csv", folder / "tracks.csv"))
+    shared = REPO.parent / "shared" / "data"
+    if not shared.is_dir():
+        print(f"bench: {shared} is absent; shared sequences skipped", file=sys.stderr)
+        return found
+    for folder in sorted(shared.glob("*/")):
+        gt_path = folder / "tracks.csv"
+        if not gt_path.is_file():
+            continue
+        rows = gt_queries(load_gt_csv(gt_path), max_points=max_points)
+        queries = work / f"{folder.name}.queries.csv"
+        write_queries(rows, queries)
+        found.append((f"shared/{folder.name}", folder, queries, gt_path))
+    return found
+
+
+def _fmt(value) -> str:
+    return "n/a" if value is None else f"{value:.3f}"
+
+
+def accuracy_table(max_points: int, work: Path) -> list[str]:
+    """Markdown rows: every method on every sequence with ground truth."""
+    built = set(registry.names("filter"))
+    lines = [
+        "| sequence | method | points | <δ_avg | AJ | OA | cov95 | median err (px) | wall (s) | × stk |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for name, folder, queries, gt_path in sequences(max_points, work):
+        truth = load_gt_csv(gt_path)
+        stk_seconds = None
+        for method in METHODS:
+            if method not in built:
+                lines.append(f"| {name} | {method} | | not built yet | | | | | | |")
+                continue
+            out = work / f"{name.replace('/', '_')}.{method}.h5"
+            seconds, _, code, message = run_track([str(folder), "-p", str(queries), "-m", method, "-o", str(out)])
+            if code != 0:
+                lines.append(f"| {name} | {method} | | failed: {message} | | | | | | |")
+                continue
+            stk_seconds = seconds if method == "stk" else stk_seconds
+            result, data = score_tracks(read_tracks(out)[0], truth, "first")
+            ratio = f"{seconds / stk_seconds:.1f}" if stk_seconds else "n/a"
+            lines.append(
+                f"| {name} | {method} | {len(data.point_id)} | {_fmt(result['delta_avg'])} | {_fmt(result['AJ'])} | "
+                f"{_fmt(result['OA'])} | {_fmt(result['cov95'])} | {_fmt(result['median_err'])} | {seconds:.1f} | {ratio} |"
+            )
+            print(lines[-1], file=sys.stderr)
+    return lines
+
+
+def speed_table(work: Path, n_points: int = 500, n_frames: int = 60, size: tuple[int, int] = (640, 480)) -> list[str]:
+    """Markdown rows of the speed case: ``n_points`` points x ``n_frames`` frames at ``size``."""
+    from condtrack_cli.frames.synthetic import make_scene, write_scene
+
+    folder = work / "speed"
+    write_scene(make_scene("camera_motion", seed=1, size=size, n_frames=n_frames), folder)
+    rng = np.random.default_rng(0)
+    margin = 24
+    xy = np.column_stack([rng.uniform(margin, size[0] - margin, n_points), rng.uniform(margin, size[1] - margin, n_points)])
+    queries = work / "speed.queries.csv"
+    write_queries(np.column_stack([np.arange(n_points), np.zeros(n_points), xy]), queries)
+    lines = [
+        f"Speed case: {n_points} points x {n_frames} frames at {size[0]}x{size[1]} (synthetic camera_motion scene, "
+        "uniformly drawn points). Whole-process wall time, including start-up and writing the HDF5 file.",
+        "",
+        "| method | wall (s) | s / frame | × stk | peak RSS (MiB) |",
+        "|---|---|---|---|---|",
+    ]
+    stk_seconds = None
+    for method in METHODS:
+        if method not in registry.names("filter"):
+            lines.append(f"| {method} | not built yet | | | |")
+            continue
+        seconds, rss, code, message = run_track([str(folder), "-p", str(queries), "-m", method, "-o", str(work / f"speed.{method}.h5")])
+        if code != 0:
+            lines.append(f"| {method} | failed: {message} | | | |")
+            continue
+        stk_seconds = seconds if method == "stk" else stk_seconds
+        lines.append(f"| {method} | {seconds:.2f} | {seconds / n_frames:.4f} | {seconds / stk_seconds:.1f} | {rss:.0f} |")
+        print(lines[-1], file=sys.stderr)
+    return lines
+
+
+def machine() -> str:
+    cpu = platform.processor() or "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{os.cpu_count()} cores, {cpu}"
+
+
+def commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
+    except OSError:
+        return "unknown"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=REPO / "bench" / "results.md")
+    parser.add_argument("--max-points", type=int, default=1000, help="most query points per shared sequence")
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory(prefix="condtrack-bench-") as temporary:
+        work = Path(temporary)
+        accuracy = accuracy_table(args.max_points, work)
+        speed = speed_table(work)
+    header = [
+        "# condtrack benchmark",
+        "",
+        f"- date: {datetime.date.today().isoformat()}",
+        f"- machine: {machine()}",
+        f"- commit: {commit()}",
+        "- command: `make bench`",
+        "",
+        "## Accuracy (TAP-Vid 'first' query mode; shared sets: queries = first observation of tracks "
+        f"with >= 3 observations, at most {args.max_points} per sequence)",
+        "",
+        "OA and AJ are n/a where the ground truth has no occluded rows. cov95 is n/a for methods without covariance.",
+        "",
+    ]
+    text = "\n".join(header + accuracy + ["", "## Speed", ""] + speed) + "\n"
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text)
+    print(f"bench: wrote {args.out}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()
