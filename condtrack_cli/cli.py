@@ -45,13 +45,15 @@ class _Progress:
             self.task = self.bar.add_task("track", total=n_frames, active=0)
             self.bar.start()
         self.step = max(1, n_frames // 10)
+        self.done = 0
 
     def __call__(self, index: int, estimate) -> None:
+        self.done += 1
         active = int(np.isfinite(estimate.xy[:, 0]).sum())
         if self.bar is not None:
-            self.bar.update(self.task, completed=index + 1, active=active)
-        elif not self.quiet and ((index + 1) % self.step == 0 or index + 1 == self.n_frames):
-            click.echo(f"frame {index + 1}/{self.n_frames}: {active} active points", err=True)
+            self.bar.update(self.task, completed=self.done, active=active)
+        elif not self.quiet and (self.done % self.step == 0 or self.done == self.n_frames):
+            click.echo(f"frame {self.done}/{self.n_frames}: {active} active points", err=True)
 
     def close(self) -> float:
         if self.bar is not None:
@@ -100,7 +102,8 @@ def track(input_path, config_path, queries_path, method, output_path, seed, over
     source = registry.get("frames", frames_stage.name).factory(frames_stage.settings, input_path)
     info = source.info
     queries = read_queries(queries_path, info) if queries_path else None
-    progress = _Progress(info.n_frames, quiet)
+    backward_frames = int(queries.frame.max()) + 1 if queries is not None and queries.frame.max() > 0 else 0
+    progress = _Progress(info.n_frames + backward_frames, quiet)
     try:
         tracks = pipeline.run(source, info, config, queries, seed=seed, on_frame=progress)
     finally:

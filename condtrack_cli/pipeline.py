@@ -3,6 +3,10 @@
 The filter composes the motion and measurement stages it needs; the pipeline
 streams frames, keeps only the previous and the current one, and hands each
 frame's report to an optional ``on_frame`` callback (progress display).
+
+A point queried at frame k > 0 is tracked forward from k and backward from k:
+the backward pass runs the same filter on the time-reversed frames k_max .. 0
+(k_max the latest query frame), so every point has a position on every frame.
 """
 
 from __future__ import annotations
@@ -26,14 +30,55 @@ def detect_queries(config: Config, first: Frame) -> Queries:
 
 
 def run(
-    frames: Iterable[np.ndarray],
+    source,
     info: SequenceInfo,
     config: Config,
     queries: Queries | None = None,
     seed: int = 0,
     on_frame: Callable[[int, FrameEstimate], None] | None = None,
 ) -> Tracks:
-    """Track ``queries`` (detected on frame 0 when None) through ``frames`` with ``config.method``."""
+    """Track ``queries`` (detected on frame 0 when None) through ``source`` in both directions.
+
+    ``source`` iterates (H, W) uint8 frames and has ``reversed_from(k)`` (the
+    frame readers). The backward pass uses the seed ``seed + 1``.
+    """
+    forward = run_pass(source, info, config, queries, seed, on_frame)
+    queries = forward.queries
+    last = int(queries.frame.max())
+    if last == 0:
+        return forward
+    mirrored = Queries(queries.point_id, last - queries.frame, queries.xy)
+    backward = run_pass(source.reversed_from(last), info, config, mirrored, seed + 1, on_frame)
+    return merge_backward(forward, backward)
+
+
+def merge_backward(forward: Tracks, backward: Tracks) -> Tracks:
+    """Tracks with ``backward``'s (time-reversed, frames last..0) rows before each query frame."""
+    last = backward.xy.shape[1] - 1
+    before = np.arange(forward.xy.shape[1])[None, :] < forward.queries.frame[:, None]  # (P, F)
+
+    def combine(ahead: np.ndarray, behind: np.ndarray) -> np.ndarray:
+        padded = np.full_like(ahead, np.nan if ahead.dtype.kind == "f" else 0)
+        padded[:, : last + 1] = behind[:, ::-1]
+        mask = before.reshape(before.shape + (1,) * (ahead.ndim - 2))
+        return np.where(mask, padded, ahead)
+
+    return Tracks(
+        queries=forward.queries, xy=combine(forward.xy, backward.xy), cov=combine(forward.cov, backward.cov),
+        visible=combine(forward.visible, backward.visible), method=combine(forward.method, backward.method),
+        z=combine(forward.z, backward.z), R=combine(forward.R, backward.R),
+    )
+
+
+def run_pass(
+    frames: Iterable[np.ndarray],
+    info: SequenceInfo,
+    config: Config,
+    queries: Queries | None,
+    seed: int,
+    on_frame: Callable[[int, FrameEstimate], None] | None,
+) -> Tracks:
+    """One pass of ``config.method`` through ``frames`` (frame i of the iterable is frame i of the pass)."""
     spec = registry.get("filter", config.method)
     tracker = None
     history: list[FrameEstimate] = []

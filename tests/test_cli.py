@@ -62,7 +62,7 @@ def test_csv_on_stdout_without_output(shifted_folder):
     assert result.output.splitlines()[0] == ",".join(CSV_COLUMNS)
 
 
-def test_queries_file_tracks_each_point_from_its_frame(shifted_folder, tmp_path):
+def test_queries_are_tracked_forward_and_backward_from_their_frame(shifted_folder, tmp_path):
     folder, shifts = shifted_folder
     queries = tmp_path / "q.csv"
     start = np.array([[100.0, 80.0], [200.0, 150.0]])
@@ -72,7 +72,11 @@ def test_queries_file_tracks_each_point_from_its_frame(shifted_folder, tmp_path)
     tracks, _ = read_tracks(out)
     np.testing.assert_array_equal(tracks.queries.point_id, [3, 7])
     np.testing.assert_array_equal(tracks.queries.frame, [0, 2])
-    assert np.isnan(tracks.xy[1, :2]).all() and np.isfinite(tracks.xy[1, 2:]).all()
+    assert np.isfinite(tracks.xy).all()  # tracked backward from frame 2 to 0 as well
+    truth = start[::-1][:, None] + shifts[None]  # point 3 starts at start[1], point 7 at start[0]
+    np.testing.assert_array_less(np.linalg.norm(tracks.xy - truth, axis=-1), 0.2)
+    lines = out.read_text().splitlines()
+    assert len(lines) == 1 + 2 * 6 and lines[1].startswith("3,0,") and lines[7].startswith("7,0,")
 
 
 @pytest.mark.parametrize(
