@@ -69,7 +69,8 @@ def test_queries_are_tracked_forward_and_backward_from_their_frame(shifted_folde
     queries.write_text(f"point_id,frame,x,y\n7,2,{start[0,0] + shifts[2,0]},{start[0,1] + shifts[2,1]}\n3,0,{start[1,0]},{start[1,1]}\n")
     out = tmp_path / "t.csv"
     assert run_cli("track", str(folder), "-p", str(queries), "-o", str(out), "-q").returncode == 0
-    tracks, _ = read_tracks(out)
+    assert run_cli("track", str(folder), "-p", str(queries), "-o", str(tmp_path / "t.h5"), "-q").returncode == 0
+    tracks, _ = read_tracks(tmp_path / "t.h5")
     np.testing.assert_array_equal(tracks.queries.point_id, [3, 7])
     np.testing.assert_array_equal(tracks.queries.frame, [0, 2])
     assert np.isfinite(tracks.xy).all()  # tracked backward from frame 2 to 0 as well

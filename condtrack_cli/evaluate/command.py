@@ -61,7 +61,7 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
       median_err    median distance on GT-visible scored frames (px)
       cov95         fraction of GT-visible scored positions inside the
                     predicted 95% ellipse (ideal 0.95)
-    A point's query frame is its first predicted frame. GT CSV rows that are
+    A point's query frame is the file's query (HDF5) or its first row (CSV). GT CSV rows that are
     absent are not scored. OA, AJ and jaccard_x are n/a (null) when the GT has
     no occluded scored frame: there is then no visibility to judge. Points are
     matched by point_id; GT points missing from PRED are not scored (their count

@@ -261,7 +261,7 @@ def align(pred: Tracks, gt: GroundTruth) -> Aligned:
     pred_xy = _pad_frames(pred.xy[pred_index], n_frames, np.nan)
     return Aligned(
         point_id=common,
-        query_frame=np.isfinite(pred_xy).all(axis=-1).argmax(axis=1),
+        query_frame=np.asarray(pred.queries.frame, np.int64)[pred_index],
         pred_xy=pred_xy,
         pred_visible=_pad_frames(pred.visible[pred_index], n_frames, False),
         pred_cov=_pad_frames(pred.cov[pred_index], n_frames, np.nan),
