@@ -58,8 +58,8 @@ class GroundTruth:
 class Aligned:
     """A prediction and its ground truth on their P common points and F common frames.
 
-    point_id: (P,) int64 sorted. query_frame: (P,) int64, the first frame on which
-    the prediction has a position.
+    point_id: (P,) int64 sorted. query_frame: (P,) int64, the prediction's query
+    frame (HDF5: its /queries; CSV: the point's first row).
     pred_xy: (P, F, 2), NaN where no position; pred_visible: (P, F) bool;
     pred_cov: (P, F, 2, 2) px^2.
     gt_xy: (P, F, 2); gt_visible, gt_known: (P, F) bool (as in ``GroundTruth``).
