@@ -26,7 +26,7 @@ bench: $(STAMP)
 	$(BIN)/python -m condtrack_cli.evaluate.bench --out bench/results.md
 
 samples: $(STAMP)
-	$(BIN)/python -m condtrack_cli.frames.synthetic --write-samples sample_sequences
+	$(BIN)/condtrack synth sample_sequences --samples
 
 clean:
 	rm -rf $(VENV) demo-out .pytest_cache

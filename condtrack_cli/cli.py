@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import logging
-import os
 import sys
-import time
 from pathlib import Path
 
 import click
@@ -16,49 +14,35 @@ from condtrack_cli.config import Config, default_yaml, load_config
 from condtrack_cli.errors import CondtrackError
 
 
-def _check_output_path(path: Path) -> None:
-    """Refuse an output path before any work: unknown extension, missing or read-only folder."""
-    from condtrack_cli.output.write import writer_for
-
-    writer_for(path)
-    folder = path.parent
-    if not folder.is_dir():
-        raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")
-    if not os.access(folder, os.W_OK | os.X_OK):
-        raise CondtrackError(f"{path}: the output folder '{folder}' is not writable")
-
-
 class _Progress:
-    """Per-frame progress on stderr: a rich bar on a terminal, plain lines otherwise, nothing when quiet."""
+    """Per-frame progress on stderr: a rich bar on a terminal, a plain line every tenth otherwise."""
 
-    def __init__(self, n_frames: int, quiet: bool):
-        self.n_frames, self.quiet = n_frames, quiet
-        self.started = time.perf_counter()
+    def __init__(self, n_frames: int):
+        self.n_frames, self.done = n_frames, 0
+        self.step = max(1, n_frames // 10)
         self.bar = None
-        if not quiet and sys.stderr.isatty():
+        if sys.stderr.isatty():
+            from rich.console import Console
             from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
             self.bar = Progress(
                 TextColumn("tracking"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[active]} active"),
-                TimeRemainingColumn(), console=__import__("rich.console").console.Console(stderr=True), transient=True,
+                TimeRemainingColumn(), console=Console(stderr=True), transient=True,
             )
             self.task = self.bar.add_task("track", total=n_frames, active=0)
             self.bar.start()
-        self.step = max(1, n_frames // 10)
-        self.done = 0
 
     def __call__(self, index: int, estimate) -> None:
         self.done += 1
         active = int(np.isfinite(estimate.xy[:, 0]).sum())
         if self.bar is not None:
             self.bar.update(self.task, completed=self.done, active=active)
-        elif not self.quiet and (self.done % self.step == 0 or self.done == self.n_frames):
+        elif self.done % self.step == 0 or self.done == self.n_frames:
             click.echo(f"frame {self.done}/{self.n_frames}: {active} active points", err=True)
 
-    def close(self) -> float:
+    def close(self) -> None:
         if self.bar is not None:
             self.bar.stop()
-        return time.perf_counter() - self.started
 
 
 def _configure_logging(quiet: bool) -> None:
@@ -79,48 +63,72 @@ def cli() -> None:
 
 
 @cli.command()
-@click.argument("input_path", metavar="INPUT")
+@click.argument("inputs", metavar="INPUT...", nargs=-1)
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), help="YAML config (default: configs/default.yaml's values).")
 @click.option("-p", "--queries", "queries_path", type=click.Path(dir_okay=False), help="CSV of query points: frame,x,y[,point_id].")
 @click.option("-m", "--method", help="Tracking method (overrides filter.method); see `condtrack stages`.")
 @click.option("-o", "--output", "output_path", type=click.Path(dir_okay=False), help="Output .h5/.hdf5 or .csv (default: CSV on stdout).")
+@click.option("--overlay", "overlay_path", type=click.Path(dir_okay=False), help="Also render an overlay video (.mp4) of the tracks.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override one config value, e.g. motion.levels=3 (repeatable).")
+@click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
+@click.option("--out-dir", type=click.Path(file_okay=False), help="Batch: folder of the outputs, one <input name>.<format> each.")
+@click.option("--format", "batch_format", type=click.Choice(["h5", "csv"]), default="h5", show_default=True, help="Batch: output format.")
+@click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True, help="Batch: inputs processed in parallel.")
 @click.option("-q", "--quiet", is_flag=True, help="No progress or summary on stderr.")
-def track(input_path, config_path, queries_path, method, output_path, seed, overrides, quiet) -> None:
-    """Track points through INPUT, a folder of frames or a video file."""
-    from condtrack_cli import pipeline
-    from condtrack_cli.output import write_tracks
-    from condtrack_cli.output.write import csv_text
-    from condtrack_cli.queries import read_queries
+def track(inputs, config_path, queries_path, method, output_path, overlay_path, seed, overrides, list_path, out_dir,
+          batch_format, jobs, quiet) -> None:
+    """Track points through INPUT, a folder of frames or a video file.
+
+    Several INPUTs (or --from-list) make a batch: one output per input in
+    --out-dir, a failing input is reported and the others go on, a final table
+    gives each input's status, and the exit code is 1 if any input failed.
+    """
+    from condtrack_cli.run import track_batch, track_input
 
     _configure_logging(quiet)
+    inputs = list(inputs) + (_read_list(list_path) if list_path else [])
+    if not inputs:
+        raise CondtrackError("no INPUT given (a frame folder or a video file, or --from-list FILE)")
     config: Config = load_config(config_path, list(overrides), method)
-    if output_path is not None:
-        _check_output_path(Path(output_path))
-    frames_stage = config.stage("frames")
-    source = registry.get("frames", frames_stage.name).factory(frames_stage.settings, input_path)
-    info = source.info
-    queries = read_queries(queries_path, info) if queries_path else None
-    backward_frames = int(queries.frame.max()) + 1 if queries is not None and queries.frame.max() > 0 else 0
-    progress = _Progress(info.n_frames + backward_frames, quiet)
+    if len(inputs) == 1 and out_dir is None:
+        progress = None if quiet else _Progress
+        summary = track_input(inputs[0], config, queries_path, output_path, seed, progress, overlay_path)
+        if not quiet:
+            click.echo(summary.line(config.method), err=True)
+        return
+    if output_path or overlay_path:
+        raise CondtrackError("-o and --overlay take one input; a batch writes into --out-dir")
+    if out_dir is None:
+        raise CondtrackError("several inputs need --out-dir")
+    summaries = track_batch(inputs, config, queries_path, Path(out_dir), f".{batch_format}", seed, jobs)
+    _print_batch_table(summaries, config.method)
+    if any(s.error for s in summaries):
+        sys.exit(1)
+
+
+def _read_list(path: str) -> list[str]:
     try:
-        tracks = pipeline.run(source, info, config, queries, seed=seed, on_frame=progress)
-    finally:
-        seconds = progress.close()
-    meta = {"config": config.to_yaml(), "method": config.method, "seed": seed}
-    if output_path is None:
-        sys.stdout.write(csv_text(tracks))
-    else:
-        write_tracks(tracks, output_path, info, meta, config.output)
-    if not quiet:
-        started = tracks.has_state
-        share = tracks.visible[started].mean() if started.any() else 0.0
-        where = f" -> {output_path}" if output_path else ""
-        click.echo(
-            f"{len(tracks.queries)} points, {share:.1%} of tracked rows visible, "
-            f"{seconds / max(info.n_frames, 1):.3f} s/frame ({config.method}){where}", err=True,
-        )
+        lines = Path(path).read_text(encoding="utf-8").splitlines()
+    except OSError as error:
+        raise CondtrackError(f"{path}: cannot read the input list ({error.strerror})") from None
+    return [line.strip() for line in lines if line.strip() and not line.lstrip().startswith("#")]
+
+
+def _print_batch_table(summaries, method: str) -> None:
+    """The batch's final table, on stderr (stdout stays clean)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"condtrack batch ({method})")
+    for column in ("input", "status", "points", "visible", "s/frame", "output or error"):
+        table.add_column(column)
+    for s in summaries:
+        if s.error:
+            table.add_row(s.input, "failed", "", "", "", s.error)
+        else:
+            table.add_row(s.input, "ok", str(s.n_points), f"{s.visible_share:.1%}", f"{s.seconds_per_frame:.3f}", s.output)
+    Console(stderr=True, width=160).print(table)
 
 
 @cli.command()
@@ -134,6 +142,34 @@ def stages(default_config: bool) -> None:
         click.echo(f"{kind}:")
         for name in registry.names(kind):
             click.echo(f"  {name:12s} {registry.get(kind, name).summary}")
+
+
+@cli.command()
+@click.argument("out", type=click.Path(file_okay=False))
+@click.option("--scene", help="Scene to write into OUT: camera_motion, occlusion, ring, illumination, fast.")
+@click.option("--samples", is_flag=True, help="Write the shipped sample sequences under OUT instead (make samples).")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--size", default="320x240", show_default=True, help="WIDTHxHEIGHT in pixels.")
+@click.option("--frames", "n_frames", type=click.IntRange(min=2), help="Number of frames (the scene's default otherwise).")
+@click.option("--noise", type=click.FloatRange(min=0), help="Noise standard deviation (grey levels).")
+def synth(out, scene, samples, seed, size, n_frames, noise) -> None:
+    """Write a synthetic scene with exact ground truth: frames, queries.csv, tracks.csv, labels.csv."""
+    from condtrack_cli.frames.synthetic import make_scene, write_samples, write_scene
+
+    if samples:
+        for name, folder in write_samples(out).items():
+            click.echo(f"{name}: {folder}")
+        return
+    if not scene:
+        raise CondtrackError("synth needs --scene NAME or --samples")
+    width, sep, height = size.partition("x")
+    if not (sep and width.isdigit() and height.isdigit()):
+        raise CondtrackError(f"--size: expected WIDTHxHEIGHT, got {size!r}")
+    try:
+        written = write_scene(make_scene(scene, seed, (int(width), int(height)), n_frames, noise), out)
+    except ValueError as error:
+        raise CondtrackError(str(error)) from None
+    click.echo(f"{scene}: {written}")
 
 
 def _add_commands() -> None:

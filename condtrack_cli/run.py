@@ -1,0 +1,132 @@
+"""One tracking job (input -> output file), and a batch of them, without any click.
+
+``track_input`` is what ``condtrack track`` does for one input; ``track_batch``
+runs it over many inputs (in parallel processes with ``jobs`` > 1), reports each
+failure and goes on.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+from condtrack_cli import pipeline, registry
+from condtrack_cli.config import Config
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.output.write import csv_text, write_tracks, writer_for
+from condtrack_cli.queries import read_queries
+
+
+@dataclass(frozen=True)
+class RunSummary:
+    """What one job did: points, share of visible rows, seconds per frame; or its error."""
+
+    input: str
+    output: str | None
+    n_points: int = 0
+    visible_share: float = 0.0
+    seconds_per_frame: float = 0.0
+    error: str | None = None
+
+    def line(self, method: str) -> str:
+        where = f" -> {self.output}" if self.output else ""
+        return (
+            f"{self.n_points} points, {self.visible_share:.1%} of tracked rows visible, "
+            f"{self.seconds_per_frame:.3f} s/frame ({method}){where}"
+        )
+
+
+def check_output_path(path: Path) -> None:
+    """Refuse an output path before any work: unknown extension, missing or read-only folder."""
+    writer_for(path)
+    folder = path.parent
+    if not folder.is_dir():
+        raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise CondtrackError(f"{path}: the output folder '{folder}' is not writable")
+
+
+def track_input(
+    input_path: str, config: Config, queries_path: str | None, output_path: str | None, seed: int,
+    progress_factory=None, overlay_path: str | None = None,
+) -> RunSummary:
+    """Track one input and write its output (CSV on stdout when ``output_path`` is None).
+
+    ``progress_factory(total_frames)`` returns a per-frame callback with a
+    ``close()`` method giving the elapsed seconds; None tracks silently.
+    """
+    if output_path is not None:
+        check_output_path(Path(output_path))
+    if overlay_path is not None:
+        check_overlay_path(Path(overlay_path))
+    frames_stage = config.stage("frames")
+    source = registry.get("frames", frames_stage.name).factory(frames_stage.settings, input_path)
+    info = source.info
+    queries = read_queries(queries_path, info) if queries_path else None
+    backward_frames = int(queries.frame.max()) + 1 if queries is not None and queries.frame.max() > 0 else 0
+    started = time.perf_counter()
+    progress = progress_factory(info.n_frames + backward_frames) if progress_factory else None
+    try:
+        tracks = pipeline.run(source, info, config, queries, seed=seed, on_frame=progress)
+    finally:
+        if progress is not None:
+            progress.close()
+    seconds = time.perf_counter() - started
+    meta = {"config": config.to_yaml(), "method": config.method, "seed": seed}
+    if output_path is None:
+        sys.stdout.write(csv_text(tracks))
+    else:
+        write_tracks(tracks, output_path, info, meta, config.output)
+    if overlay_path is not None:
+        from condtrack_cli.output.render import render_overlay
+
+        render_overlay(tracks, iter(source), overlay_path, fps=info.fps or 10.0)
+    rows = tracks.has_state
+    return RunSummary(
+        input=input_path, output=output_path, n_points=len(tracks.queries),
+        visible_share=float(tracks.visible[rows].mean()) if rows.any() else 0.0,
+        seconds_per_frame=seconds / max(info.n_frames, 1),
+    )
+
+
+def check_overlay_path(path: Path) -> None:
+    """Refuse an overlay path whose folder does not exist or cannot be written, before any work."""
+    if not path.parent.is_dir() or not os.access(path.parent, os.W_OK | os.X_OK):
+        raise CondtrackError(f"{path}: the overlay folder '{path.parent}' does not exist or is not writable")
+
+
+def batch_outputs(inputs: list[str], out_dir: Path, suffix: str) -> list[str]:
+    """Predictable output names: ``out_dir/<input name without extension><suffix>``; refuse collisions."""
+    names = [Path(p.rstrip("/")).stem or Path(p.rstrip("/")).name for p in inputs]
+    seen: dict[str, str] = {}
+    for name, path in zip(names, inputs):
+        if name in seen:
+            raise CondtrackError(f"inputs '{seen[name]}' and '{path}' would both write '{name}{suffix}' in {out_dir}")
+        seen[name] = path
+    return [str(out_dir / f"{name}{suffix}") for name in names]
+
+
+def _batch_job(args: tuple) -> RunSummary:
+    input_path, config, queries_path, output_path, seed = args
+    try:
+        return track_input(input_path, config, queries_path, output_path, seed)
+    except CondtrackError as error:
+        return RunSummary(input=input_path, output=None, error=str(error))
+
+
+def track_batch(
+    inputs: list[str], config: Config, queries_path: str | None, out_dir: Path, suffix: str, seed: int, jobs: int,
+) -> list[RunSummary]:
+    """Track every input into ``out_dir``; one summary per input, in input order."""
+    if not out_dir.is_dir():
+        raise CondtrackError(f"--out-dir '{out_dir}' does not exist")
+    outputs = batch_outputs(inputs, out_dir, suffix)
+    work = [(i, config, queries_path, o, seed) for i, o in zip(inputs, outputs)]
+    if jobs <= 1:
+        return [_batch_job(job) for job in work]
+    with ProcessPoolExecutor(max_workers=jobs) as pool:
+        return list(pool.map(_batch_job, work))
