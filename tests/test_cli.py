@@ -143,3 +143,18 @@ def test_third_party_stage_registers_through_entry_points(tmp_path, monkeypatch)
     finally:
         registry._STAGES["detect"].pop("grid", None)
         registry.reload_entry_points()
+
+
+@pytest.mark.parametrize("sample, floor", [("camera_motion", 0.90), ("occlusion", 0.75)])
+def test_stk_accuracy_on_the_samples(tmp_path, sample, floor):
+    """STK's <delta_avg on the shipped samples' exact ground truth stays above a floor (measured 0.958 / 0.807)."""
+    from condtrack_cli.evaluate.groundtruth import load_gt_csv
+    from condtrack_cli.evaluate.score import score_tracks
+
+    from conftest import SAMPLES
+
+    folder = SAMPLES / sample
+    out = tmp_path / "stk.h5"
+    assert run_cli("track", str(folder), "-p", str(folder / "queries.csv"), "-m", "stk", "-o", str(out), "-q").returncode == 0
+    result, _ = score_tracks(read_tracks(out)[0], load_gt_csv(folder / "tracks.csv"))
+    assert result["delta_avg"] >= floor
