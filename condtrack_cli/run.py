@@ -84,7 +84,7 @@ def track_input(
     if overlay_path is not None:
         from condtrack_cli.output.render import render_overlay
 
-        render_overlay(tracks, iter(source), overlay_path, fps=info.fps or 10.0)
+        render_overlay(tracks, source, overlay_path, info.fps)
     rows = tracks.has_state
     return RunSummary(
         input=input_path, output=output_path, n_points=len(tracks.queries),

@@ -1,9 +1,10 @@
-"""Write a file completely or not at all: a temporary file beside it, renamed at the end."""
+"""Write a file (or a folder) completely or not at all: build it beside its final path, rename it at the end."""
 
 from __future__ import annotations
 
 import contextlib
 import os
+import shutil
 import tempfile
 from pathlib import Path
 from typing import Iterator
@@ -29,3 +30,38 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def staging_folder(path: str | Path) -> Iterator[Path]:
+    """Yield a new private folder in ``path``'s folder to build an output in; it is deleted on exit with all it holds.
+
+    Whatever is built there and handed to :func:`publish` before the exit appears
+    at its final path by one rename; anything else vanishes. Lets the caller pick
+    the built item's name (a video keeps its extension, which OpenCV reads) and
+    build a folder as well as a file.
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")
+    try:
+        staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=folder))
+    except OSError as error:
+        raise CondtrackError(f"{path}: cannot write in '{folder}' ({error.strerror})") from None
+    try:
+        yield staging
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def publish(built: Path, path: str | Path) -> None:
+    """Rename ``built`` (inside a :func:`staging_folder` beside ``path``) to ``path``.
+
+    A file replaces an existing file; a folder is refused when ``path`` exists
+    and is not an empty folder (nothing of the user's is ever deleted).
+    """
+    try:
+        os.replace(built, path)
+    except OSError as error:
+        raise CondtrackError(f"{path}: cannot put the output in place ({error.strerror})") from None

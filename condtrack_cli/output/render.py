@@ -1,0 +1,302 @@
+"""Off-screen overlay rendering: tracks drawn on their frames, as a video (or PNG folder) and a contact sheet.
+
+Pixel convention: x to the right, y down, origin at the centre of the top-left
+pixel. OpenCV draws with the same convention, so positions are drawn as they
+are, in fixed point with ``SHIFT`` fractional bits (sub-pixel drawing).
+
+What is drawn on frame k, for every point with a state on k, in the colour of
+the method that produced the row (``PALETTE``, legend in the top-left corner):
+
+- its trail: segments joining its last ``trail`` positions (frames k-trail+1..k),
+  darker with age;
+- its 95% covariance ellipse (chi-square, 2 degrees of freedom: 5.991) where the
+  covariance is finite; none where it is NaN (the method has none) or infinite
+  (no information);
+- a filled dot when visible, a hollow X when not visible or when the covariance
+  is infinite;
+- CNLF particles, when given, as single pixels in a light tint of the cnlf colour.
+
+Geometry (ellipse axes and outlines, trail segments, marks) is computed for all
+points at once; only the cv2 drawing calls loop, over colours (and over points
+for the filled dots, which cv2 cannot batch).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from pathlib import Path
+from typing import Iterable, Iterator
+
+import cv2
+import numpy as np
+
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.output.atomic import atomic_path, publish, staging_folder
+from condtrack_cli.types import METHODS, Tracks
+
+#: chi-square quantile of 0.95 with 2 degrees of freedom: the 95% ellipse is nu^T cov^-1 nu <= this.
+CHI2_95_2DOF = 5.991
+#: Fractional bits of the fixed-point coordinates passed to cv2 (1/16 px).
+SHIFT = 4
+#: BGR colour per method, in the order of ``METHODS``.
+PALETTE = np.array([
+    (0, 220, 255),   # stk: yellow
+    (255, 160, 0),   # mdr: azure
+    (80, 220, 0),    # clf: green
+    (60, 60, 255),   # cnlf: red
+], dtype=np.int64)
+#: Frame rate of the video when the input has none (a folder of frames).
+DEFAULT_FPS = 25.0
+#: Codec tried for the video; when it does not open, a folder of PNGs is written instead.
+FOURCC = "mp4v"
+
+_DOT_RADIUS = 2.5       # px, visible mark
+_CROSS_HALF = 3.0       # px, half the side of the not-visible X
+_ELLIPSE_VERTICES = 64
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+_FONT_SCALE = 0.35
+_HIDDEN_COLOUR = (230, 230, 230)
+
+
+def ellipse_axes(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Semi-axes and orientation of the 95% ellipses of finite covariances.
+
+    cov: (K, 2, 2) px^2, finite and symmetric. Returns ``axes`` (K, 2) in px,
+    (major, minor), and ``angle`` (K,) in radians of the major axis, from +x
+    towards +y (clockwise on screen, as cv2 measures it). Negative eigenvalues
+    (round-off) are clipped to 0.
+    """
+    a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    mean, radius = (a + c) / 2, np.hypot((a - c) / 2, b)
+    eigen = np.clip(np.stack([mean + radius, mean - radius], axis=-1), 0.0, None)
+    return np.sqrt(CHI2_95_2DOF * eigen), 0.5 * np.arctan2(2 * b, a - c)
+
+
+def ellipse_outlines(centre: np.ndarray, cov: np.ndarray, max_axis: float) -> np.ndarray:
+    """(K, V, 2) closed outlines of the 95% ellipses around ``centre`` (K, 2) of ``cov`` (K, 2, 2).
+
+    Semi-axes are clipped to ``max_axis`` px so that huge (but finite) ellipses stay drawable.
+    """
+    axes, angle = ellipse_axes(cov)
+    axes = np.minimum(axes, max_axis)
+    t = np.linspace(0.0, 2 * np.pi, _ELLIPSE_VERTICES, endpoint=False)
+    u, v = axes[:, :1] * np.cos(t), axes[:, 1:] * np.sin(t)  # (K, V) in the ellipse's own frame
+    cos, sin = np.cos(angle)[:, None], np.sin(angle)[:, None]
+    return np.stack([centre[:, :1] + u * cos - v * sin, centre[:, 1:] + u * sin + v * cos], axis=-1)
+
+
+def _fixed(points: np.ndarray) -> np.ndarray:
+    """Pixel coordinates (..., 2) -> int32 fixed point with ``SHIFT`` fractional bits."""
+    return np.rint(points * (1 << SHIFT)).astype(np.int32)
+
+
+def _colour(code: int, factor: float = 1.0) -> tuple[int, int, int]:
+    """BGR of method ``code`` scaled by ``factor`` (darker below 1)."""
+    return tuple(int(round(channel * factor)) for channel in PALETTE[code])
+
+
+def _polylines(image: np.ndarray, lines: np.ndarray, colour: tuple[int, int, int], closed: bool) -> None:
+    """Draw (K, V, 2) polylines given in pixels, anti-aliased, sub-pixel; nothing when K = 0."""
+    if len(lines):
+        cv2.polylines(image, _fixed(lines), closed, colour, 1, cv2.LINE_AA, SHIFT)
+
+
+def _put_text(image: np.ndarray, text: str, x: int, y: int, colour: tuple[int, int, int]) -> None:
+    """Text with its baseline-left corner at pixel (x, y), on a darkened box for contrast."""
+    (width, height), baseline = cv2.getTextSize(text, _FONT, _FONT_SCALE, 1)
+    box = image[max(y - height - 2, 0):y + baseline + 1, max(x - 2, 0):x + width + 2]
+    box //= 2
+    cv2.putText(image, text, (x, y), _FONT, _FONT_SCALE, colour, 1, cv2.LINE_AA)
+
+
+class Overlay:
+    """Draws tracks on their frames; one instance per (tracks, particles) pair.
+
+    tracks: P points over F frames. trail: number of past positions joined by
+    the trail (1 = none). particles: (P, F, N, 2) px, NaN where absent, or None;
+    any array-like indexable as ``particles[:, k]`` (an open h5py dataset is read
+    one frame at a time).
+    """
+
+    def __init__(self, tracks: Tracks, *, trail: int = 10, particles=None):
+        if trail < 1:
+            raise ValueError(f"trail must be at least 1, got {trail}")
+        if particles is not None and (
+            len(particles.shape) != 4 or particles.shape[:2] != tracks.xy.shape[:2] or particles.shape[3] != 2
+        ):
+            raise ValueError(f"particles must be (P, F, N, 2) = {tracks.xy.shape[:2]} + (N, 2), got {particles.shape}")
+        self.tracks, self.trail, self.particles = tracks, trail, particles
+        self.n_frames = tracks.xy.shape[1]
+        self.methods = [int(m) for m in np.unique(tracks.method) if m >= 0]  # methods present, for the legend
+
+    def draw(self, k: int, frame: np.ndarray) -> np.ndarray:
+        """Frame ``k`` (H, W) uint8 grey -> (H, W, 3) uint8 BGR with the overlay drawn."""
+        image = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
+        t = self.tracks
+        xy, cov, method = t.xy[:, k], t.cov[:, k], t.method[:, k]
+        has = np.isfinite(xy).all(axis=-1)
+        unbounded = has & np.isinf(cov).any(axis=(1, 2))
+        with_ellipse = has & np.isfinite(cov).all(axis=(1, 2))
+        hidden = has & (~t.visible[:, k] | unbounded)
+        if self.particles is not None:
+            self._draw_particles(image, np.asarray(self.particles[:, k], dtype=np.float64))
+        self._draw_trails(image, k)
+        max_axis = 4.0 * (image.shape[0] + image.shape[1])
+        outlines = ellipse_outlines(xy[with_ellipse], cov[with_ellipse], max_axis)
+        crosses = xy[hidden][:, None, None, :] + _CROSS_HALF * np.array([[[-1, -1], [1, 1]], [[-1, 1], [1, -1]]])
+        dots = _fixed(xy[has & ~hidden])
+        radius = int(_DOT_RADIUS * (1 << SHIFT))
+        for code in self.methods:
+            colour = _colour(code)
+            _polylines(image, outlines[method[with_ellipse] == code], colour, closed=True)
+            _polylines(image, crosses[method[hidden] == code].reshape(-1, 2, 2), colour, closed=False)
+            for centre in dots[method[has & ~hidden] == code].tolist():
+                cv2.circle(image, centre, radius, colour, -1, cv2.LINE_AA, SHIFT)
+        self._draw_legend(image)
+        return image
+
+    def _draw_trails(self, image: np.ndarray, k: int) -> None:
+        """Segments between consecutive positions of frames k-trail+1..k, coloured by the later row's method."""
+        first = max(0, k - self.trail + 1)
+        window = self.tracks.xy[:, first:k + 1]  # (P, L, 2)
+        segments = np.stack([window[:, :-1], window[:, 1:]], axis=2)  # (P, L-1, 2, 2)
+        valid = np.isfinite(segments).all(axis=(2, 3))
+        method = self.tracks.method[:, first + 1:k + 1]  # (P, L-1)
+        for column in range(segments.shape[1]):
+            age = k - (first + 1 + column)  # 0 for the segment ending on frame k
+            factor = 1.0 - 0.6 * age / self.trail
+            for code in self.methods:
+                chosen = valid[:, column] & (method[:, column] == code)
+                _polylines(image, segments[chosen, column], _colour(code, factor), closed=False)
+
+    def _draw_particles(self, image: np.ndarray, particles: np.ndarray) -> None:
+        """(P, N, 2) particle positions as single pixels (nearest pixel centre) inside the image."""
+        points = particles.reshape(-1, 2)
+        points = points[np.isfinite(points).all(axis=-1)]
+        column, row = np.rint(points).astype(np.int64).T
+        inside = (column >= 0) & (column < image.shape[1]) & (row >= 0) & (row < image.shape[0])
+        tint = (PALETTE[METHODS.index("cnlf")] + 255) // 2
+        image[row[inside], column[inside]] = tint
+
+    def _draw_legend(self, image: np.ndarray) -> None:
+        """Method names in their colours, then the not-visible mark, in the top-left corner."""
+        (_, height), baseline = cv2.getTextSize("Xg", _FONT, _FONT_SCALE, 1)
+        step = height + baseline + 3
+        for row, code in enumerate(self.methods):
+            _put_text(image, METHODS[code], 4, 4 + height + row * step, _colour(code))
+        _put_text(image, "x = not visible", 4, 4 + height + len(self.methods) * step, _HIDDEN_COLOUR)
+
+
+def _drawn(overlay: Overlay, frames: Iterable[np.ndarray], out_path: Path) -> Iterator[np.ndarray]:
+    """The frames with the overlay drawn; CondtrackError when their count is not the tracks' F."""
+    count = 0
+    for k, frame in enumerate(frames):
+        if k == overlay.n_frames:
+            raise CondtrackError(f"{out_path}: the input has more frames than the tracks ({overlay.n_frames})")
+        yield overlay.draw(k, frame)
+        count = k + 1
+    if count != overlay.n_frames:
+        raise CondtrackError(f"{out_path}: the input has {count} frames, the tracks {overlay.n_frames}")
+
+
+def _write_png(path: Path, image: np.ndarray) -> None:
+    ok, encoded = cv2.imencode(".png", image)
+    if not ok:
+        raise CondtrackError(f"{path}: OpenCV could not encode the image as PNG")
+    try:
+        path.write_bytes(encoded.tobytes())
+    except OSError as error:
+        raise CondtrackError(f"{path}: cannot write ({error.strerror})") from None
+
+
+def render_overlay(tracks: Tracks, frames: Iterable[np.ndarray], out_path: str | Path, fps: float, *,
+                   trail: int = 10, particles=None) -> Path:
+    """Draw ``tracks`` on ``frames`` and write the video ``out_path``; returns the path written.
+
+    tracks: P points over F frames (pixel convention of the module docstring).
+    frames: the F frames, (H, W) uint8 grey, streamed (e.g. a frame source of
+    ``condtrack_cli.frames.readers``). fps: frame rate of the video;
+    ``DEFAULT_FPS`` when not positive. trail, particles: as in :class:`Overlay`.
+
+    The video is encoded with fourcc ``FOURCC`` in the container named by the
+    extension. When no codec opens, the frames are written as ``00000.png``,
+    ``00001.png``, ... in the folder ``out_path`` without its extension (which
+    must not exist yet), said once as a warning of the ``condtrack`` logger, and
+    that folder is returned. Either output is whole or absent: it is built
+    beside its final path and renamed at the end. CondtrackError when the number
+    of frames is not F.
+    """
+    out_path = Path(out_path)
+    images = _drawn(Overlay(tracks, trail=trail, particles=particles), frames, out_path)
+    first = next(images, None)
+    if first is None:
+        raise CondtrackError(f"{out_path}: no frame to render")
+    height, width = first.shape[:2]
+    with staging_folder(out_path) as staging:
+        video = staging / out_path.name
+        writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*FOURCC), fps if fps > 0 else DEFAULT_FPS,
+                                 (width, height), True)
+        if writer.isOpened():
+            try:
+                for image in itertools.chain([first], images):
+                    writer.write(image)
+            finally:
+                writer.release()
+            publish(video, out_path)
+            return out_path
+        folder = out_path.with_suffix("")
+        if folder.exists():
+            raise CondtrackError(f"{out_path}: no video codec opened and the fallback folder '{folder}' already exists")
+        logging.getLogger("condtrack").warning(
+            "%s: no video codec opened (fourcc %s); writing PNG frames to %s/ instead", out_path, FOURCC, folder
+        )
+        built = staging / folder.name
+        built.mkdir()
+        for k, image in enumerate(itertools.chain([first], images)):
+            _write_png(built / f"{k:05d}.png", image)
+        publish(built, folder)
+        return folder
+
+
+def sheet_frames(n_frames: int, n: int) -> np.ndarray:
+    """(min(n, n_frames),) int64 indices of ``n`` evenly spaced frames, first and last included."""
+    return np.rint(np.linspace(0, n_frames - 1, min(n, n_frames))).astype(np.int64)
+
+
+def render_contact_sheet(tracks: Tracks, frames: Iterable[np.ndarray], out_png: str | Path, n: int = 6,
+                         columns: int = 3, *, trail: int = 10, particles=None) -> Path:
+    """Tile ``n`` evenly spaced frames (:func:`sheet_frames`), overlay drawn, into one PNG; returns its path.
+
+    frames: the tracks' F frames, (H, W) uint8, streamed (read up to the last
+    tile's). Tiles are H x W, row-major, ``min(columns, n)`` per row, the frame
+    index written in each tile's bottom-left corner; the sheet is
+    (rows * H, columns * W) with unused tiles black. Written whole or not at all.
+    """
+    out_png = Path(out_png)
+    if n < 1 or columns < 1:
+        raise ValueError(f"n and columns must be at least 1, got {n} and {columns}")
+    overlay = Overlay(tracks, trail=trail, particles=particles)
+    picks = sheet_frames(overlay.n_frames, n)
+    if not len(picks):
+        raise CondtrackError(f"{out_png}: no frame to render")
+    tiles = []
+    for k, frame in enumerate(frames):
+        if k in picks:
+            tile = overlay.draw(k, frame)
+            _put_text(tile, f"frame {k}", 4, tile.shape[0] - 6, (255, 255, 255))
+            tiles.append(tile)
+        if len(tiles) == len(picks):
+            break
+    else:
+        raise CondtrackError(f"{out_png}: the input ended before frame {picks[len(tiles)]}")
+    columns = min(columns, len(tiles))
+    rows = -(-len(tiles) // columns)
+    height, width = tiles[0].shape[:2]
+    sheet = np.zeros((rows * height, columns * width, 3), np.uint8)
+    for index, tile in enumerate(tiles):
+        row, column = divmod(index, columns)
+        sheet[row * height:(row + 1) * height, column * width:(column + 1) * width] = tile
+    with atomic_path(out_png) as temporary:
+        _write_png(temporary, sheet)
+    return out_png

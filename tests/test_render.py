@@ -1,0 +1,263 @@
+"""Overlay rendering (video, PNG fallback, contact sheet) and the render / info commands, on a tiny sequence."""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from condtrack_cli import SCHEMA_VERSION
+from condtrack_cli.config import OutputSettings
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.frames.readers import FrameSettings, open_frames
+from condtrack_cli.output import render
+from condtrack_cli.output.render import ellipse_axes, render_contact_sheet, render_overlay, sheet_frames
+from condtrack_cli.output.render_command import info_command, render_command
+from condtrack_cli.output.write import write_tracks
+from condtrack_cli.types import METHODS, Queries, SequenceInfo, Tracks
+
+WIDTH, HEIGHT, N_FRAMES = 96, 64, 8
+CONFIG = "x: 1\n"
+
+
+@pytest.fixture
+def frames_folder(tmp_path):
+    """8 frames of a smooth random texture, 96 x 64 px."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for k in range(N_FRAMES):
+        noise = rng.uniform(60, 200, (HEIGHT, WIDTH)).astype(np.float32)
+        cv2.imwrite(str(folder / f"f{k}.png"), cv2.GaussianBlur(noise, (0, 0), 2).astype(np.uint8))
+    return folder
+
+
+def make_tracks() -> Tracks:
+    """4 points over 8 frames: finite, NaN and infinite covariances, hidden frames, methods clf and stk.
+
+    Point 0 (clf) moves right from (20, 20), visible, finite cov; point 1 (clf) at (70, 40),
+    not visible on frames 3-5 where its cov is infinite; point 2 (stk) at (40, 50), NaN cov;
+    point 3 (stk) starts on frame 2 at (80, 15).
+    """
+    p, f = 4, N_FRAMES
+    k = np.arange(f)
+    xy = np.full((p, f, 2), np.nan)
+    xy[0] = np.column_stack([20 + 1.5 * k, np.full(f, 20.0)])
+    xy[1] = [70.0, 40.0]
+    xy[2] = np.column_stack([40.0 - 0.5 * k, np.full(f, 50.0)])
+    xy[3, 2:] = [80.25, 15.5]
+    cov = np.full((p, f, 2, 2), np.nan)
+    cov[0] = [[4.0, 1.0], [1.0, 2.0]]
+    cov[1] = [[1.0, 0.0], [0.0, 1.0]]
+    cov[1, 3:6] = [[np.inf, 0.0], [0.0, np.inf]]
+    cov[3, 2:] = [[9.0, 0.0], [0.0, 1.0]]
+    has = np.isfinite(xy).all(axis=-1)
+    visible = has.copy()
+    visible[1, 3:6] = False
+    method = np.where(has, np.array([2, 2, 0, 0])[:, None], -1).astype(np.int8)
+    queries = Queries(np.arange(p, dtype=np.int64), np.array([0, 0, 0, 2]), xy[np.arange(p), [0, 0, 0, 2]])
+    return Tracks(queries, xy, cov, visible, method, np.full_like(xy, np.nan), np.full_like(cov, np.nan))
+
+
+def write_h5(path, width=WIDTH, height=HEIGHT, n_frames=N_FRAMES):
+    info = SequenceInfo("frames", width, height, n_frames, 0.0)
+    meta = {"config": CONFIG, "method": "clf", "seed": 0}
+    write_tracks(make_tracks(), path, info, meta=meta, settings=OutputSettings())
+    return path
+
+
+def raw_frames(folder) -> list[np.ndarray]:
+    return list(open_frames(FrameSettings(), folder))
+
+
+@pytest.fixture
+def warnings_seen():
+    """Messages of the ``condtrack`` logger during the test (whatever handlers the CLI installed)."""
+    seen: list[str] = []
+
+    class Collect(logging.Handler):
+        def emit(self, record):
+            seen.append(record.getMessage())
+
+    logger = logging.getLogger("condtrack")
+    handler = Collect(logging.WARNING)
+    logger.addHandler(handler)
+    yield seen
+    logger.removeHandler(handler)
+
+
+def test_ellipse_axes_are_the_95_percent_semi_axes():
+    cov = np.array([[[4.0, 0.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 9.0]], [[2.0, 1.0], [1.0, 2.0]]])
+    axes, angle = ellipse_axes(cov)
+    np.testing.assert_allclose(axes, np.sqrt(5.991 * np.array([[4, 1], [9, 1], [3, 1]])), rtol=1e-12)
+    np.testing.assert_allclose(angle, [0.0, np.pi / 2, np.pi / 4], atol=1e-12)
+
+
+def test_overlay_video_has_the_input_length_and_size_and_marks_the_points(frames_folder, tmp_path):
+    tracks, raw = make_tracks(), raw_frames(frames_folder)
+    out = render_overlay(tracks, open_frames(FrameSettings(), frames_folder), tmp_path / "overlay.mp4", 0.0)
+    assert out == tmp_path / "overlay.mp4"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "overlay.mp4"]  # no staging left behind
+    capture = cv2.VideoCapture(str(out))
+    decoded = []
+    while True:
+        ok, image = capture.read()
+        if not ok:
+            break
+        decoded.append(image)
+    capture.release()
+    assert len(decoded) == N_FRAMES and decoded[0].shape == (HEIGHT, WIDTH, 3)
+    for k in (0, 4, 7):
+        x, y = np.rint(tracks.xy[0, k]).astype(int)
+        near = decoded[k][y - 1:y + 2, x - 1:x + 2].astype(int)
+        assert np.abs(near - raw[k][y - 1:y + 2, x - 1:x + 2, None]).max() > 60  # the green dot
+
+
+def test_drawing_follows_the_states(frames_folder):
+    """Lossless check of the frame drawing: dot, X, ellipses, nothing where no state; grey untouched far away."""
+    tracks, raw = make_tracks(), raw_frames(frames_folder)
+    overlay = render.Overlay(tracks, trail=3)
+    grey = lambda image: cv2.cvtColor(image, cv2.COLOR_GRAY2BGR).astype(int)  # noqa: E731
+    drawn = overlay.draw(4, raw[4]).astype(int)
+    changed = np.abs(drawn - grey(raw[4])).max(axis=-1) > 0
+    assert changed[20, 26] and changed[40, 70]  # point 0's dot, point 1's X centre (cov infinite, hidden)
+    assert not changed[40, 74]  # no ellipse around point 1 while its cov is infinite
+    assert changed[15, 80 + 7]  # point 3's ellipse: semi-axis sqrt(5.991 * 9) = 7.3 px along x
+    assert not changed[55:, 60:].any()  # nothing drawn far from every point (legend is top-left)
+    assert (drawn[20, 26] == render.PALETTE[METHODS.index("clf")]).all()
+    before = overlay.draw(1, raw[1]).astype(int)
+    assert not (np.abs(before - grey(raw[1])).max(axis=-1) > 0)[15, 80]  # point 3 has no state before frame 2
+
+
+def test_particles_are_drawn_as_pixels(frames_folder):
+    tracks, raw = make_tracks(), raw_frames(frames_folder)
+    particles = np.full((4, N_FRAMES, 5, 2), np.nan)
+    particles[1, :, :, 0] = [60, 61, 62, 63, 200]  # the last one outside the image
+    particles[1, :, :, 1] = 58
+    drawn = render.Overlay(tracks, particles=particles).draw(2, raw[2])
+    tint = (render.PALETTE[METHODS.index("cnlf")] + 255) // 2
+    assert (drawn[58, 60:64] == tint).all()
+    with pytest.raises(ValueError, match="particles"):
+        render.Overlay(tracks, particles=particles[:, :3])
+
+
+def test_png_folder_when_no_codec_opens(frames_folder, tmp_path, monkeypatch, warnings_seen):
+    class ClosedWriter:
+        def __init__(self, *args):
+            pass
+
+        def isOpened(self):
+            return False
+
+        def release(self):
+            pass
+
+    ClosedWriter.fourcc = staticmethod(cv2.VideoWriter.fourcc)
+    monkeypatch.setattr(render.cv2, "VideoWriter", ClosedWriter)
+    out = render_overlay(make_tracks(), raw_frames(frames_folder), tmp_path / "overlay.mp4", 25.0)
+    assert out == tmp_path / "overlay"
+    names = sorted(p.name for p in out.iterdir())
+    assert names == [f"{k:05d}.png" for k in range(N_FRAMES)]
+    assert cv2.imread(str(out / "00003.png")).shape == (HEIGHT, WIDTH, 3)
+    assert len(warnings_seen) == 1 and "overlay" in warnings_seen[0] and "PNG" in warnings_seen[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "overlay"]
+    with pytest.raises(CondtrackError, match="already exists"):  # never writes into an existing folder
+        render_overlay(make_tracks(), raw_frames(frames_folder), tmp_path / "overlay.mp4", 25.0)
+
+
+def test_contact_sheet_layout(frames_folder, tmp_path):
+    assert sheet_frames(8, 6).tolist() == [0, 1, 3, 4, 6, 7]
+    assert sheet_frames(3, 6).tolist() == [0, 1, 2]
+    out = render_contact_sheet(make_tracks(), raw_frames(frames_folder), tmp_path / "sheet.png", n=5, columns=3)
+    assert cv2.imread(str(out)).shape == (2 * HEIGHT, 3 * WIDTH, 3)
+    small = render_contact_sheet(make_tracks(), raw_frames(frames_folder), tmp_path / "two.png", n=2, columns=3)
+    assert cv2.imread(str(small)).shape == (HEIGHT, 2 * WIDTH, 3)
+
+
+def test_render_command_writes_video_and_sheet(frames_folder, tmp_path):
+    h5 = write_h5(tmp_path / "t.h5")
+    result = CliRunner().invoke(render_command, [
+        str(h5), str(frames_folder), "-o", str(tmp_path / "o.mp4"), "--contact-sheet", str(tmp_path / "s.png"),
+        "--sheet-frames", "4", "--trail", "3",
+    ])
+    assert result.exit_code == 0, result.output
+    capture = cv2.VideoCapture(str(tmp_path / "o.mp4"))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == N_FRAMES
+    capture.release()
+    assert cv2.imread(str(tmp_path / "s.png")).shape == (2 * HEIGHT, 3 * WIDTH, 3)
+
+
+def test_render_command_reads_stored_particles(frames_folder, tmp_path):
+    import h5py
+
+    h5 = write_h5(tmp_path / "t.h5")
+    with h5py.File(h5, "a") as f:
+        f["particles/xy"] = np.zeros((4, N_FRAMES, 3))  # not (P, F, N, 2)
+    result = CliRunner().invoke(render_command, [str(h5), str(frames_folder), "-o", str(tmp_path / "o.mp4")])
+    assert isinstance(result.exception, CondtrackError) and "t.h5" in str(result.exception)
+    assert "/particles/xy" in str(result.exception)
+    assert not (tmp_path / "o.mp4").exists()
+
+
+@pytest.mark.parametrize("size", [(WIDTH + 1, HEIGHT, N_FRAMES), (WIDTH, HEIGHT, N_FRAMES - 1)])
+def test_render_refuses_a_mismatched_input_without_output(frames_folder, tmp_path, size):
+    h5 = write_h5(tmp_path / "t.h5", *size)
+    result = CliRunner().invoke(render_command, [
+        str(h5), str(frames_folder), "-o", str(tmp_path / "o.mp4"), "--contact-sheet", str(tmp_path / "s.png"),
+    ])
+    assert isinstance(result.exception, CondtrackError)
+    message = str(result.exception)
+    assert "t.h5" in message and str(frames_folder) in message and f"{size[0]}x{size[1]}" in message
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "t.h5"]
+
+
+def test_render_leaves_nothing_when_the_frames_fail(frames_folder, tmp_path):
+    (frames_folder / "f5.png").write_bytes(b"not a png")
+    with pytest.raises(CondtrackError, match="frame 5"):
+        render_overlay(make_tracks(), open_frames(FrameSettings(), frames_folder), tmp_path / "o.mp4", 0.0)
+    with pytest.raises(CondtrackError, match="frame 5"):
+        render_contact_sheet(make_tracks(), open_frames(FrameSettings(), frames_folder), tmp_path / "s.png")
+    with pytest.raises(CondtrackError, match="7 frames, the tracks 8"):
+        render_overlay(make_tracks(), [np.zeros((HEIGHT, WIDTH), np.uint8)] * 7, tmp_path / "o.mp4", 0.0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames"]
+
+
+def test_render_from_csv_pads_to_the_input(frames_folder, tmp_path):
+    from condtrack_cli.output.write import csv_text
+
+    tracks = make_tracks()
+    csv = tmp_path / "t.csv"
+    short = Tracks(tracks.queries, tracks.xy[:, :5], tracks.cov[:, :5], tracks.visible[:, :5],
+                   tracks.method[:, :5], tracks.z[:, :5], tracks.R[:, :5])
+    csv.write_text(csv_text(short))
+    result = CliRunner().invoke(render_command, [str(csv), str(frames_folder), "-o", str(tmp_path / "o.mp4")])
+    assert result.exit_code == 0, result.output
+    capture = cv2.VideoCapture(str(tmp_path / "o.mp4"))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == N_FRAMES
+    capture.release()
+
+
+def test_info_prints_what_the_file_holds(tmp_path):
+    h5 = write_h5(tmp_path / "t.h5")
+    result = CliRunner().invoke(info_command, [str(h5)])
+    assert result.exit_code == 0, result.output
+    out = result.output
+    assert f"schema version:    {SCHEMA_VERSION}" in out
+    assert "frame size:        96 x 64 px" in out and "frames:            8" in out
+    assert "points:            4 (stk 2, clf 2)" in out
+    visible_rows = 8 + 8 + 8 + 6
+    assert f"{(visible_rows - 3) / visible_rows:.1%} of {visible_rows} rows" in out
+    assert "query frames:      0 .. 2" in out
+    assert "measurements:      stored" in out and "particles:         not stored" in out
+    assert "method:            clf" in out and "seed:              0" in out
+    assert out.endswith("config (resolved):\n  x: 1\n")
+
+
+def test_info_refuses_a_bad_file_naming_it(tmp_path):
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(b"nope")
+    result = CliRunner().invoke(info_command, [str(bad)])
+    assert isinstance(result.exception, CondtrackError) and "bad.h5" in str(result.exception)
