@@ -17,7 +17,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal, Mapping
+from typing import Any, ClassVar, Literal, Mapping
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -27,9 +27,15 @@ from condtrack_cli.errors import CondtrackError
 
 
 class StageSettings(BaseModel):
-    """Base of every stage's settings: frozen, strict types, unknown keys refused."""
+    """Base of every stage's settings: frozen, strict types, unknown keys refused.
+
+    ``frame_windows`` names the fields that are window sides in pixels and must
+    fit in the frame; :meth:`Config.check_fits_frame` checks them once the frame
+    size is known.
+    """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+    frame_windows: ClassVar[tuple[str, ...]] = ()
 
 
 class OutputSettings(StageSettings):
@@ -90,6 +96,19 @@ class Config:
 
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
+
+    def check_fits_frame(self, width: int, height: int) -> None:
+        """Refuse a window (``frame_windows`` of any stage) larger than a ``width`` x ``height`` frame."""
+        sections = {kind: stage.settings for kind, stage in self.stages.items()}
+        sections.update({f"filter.{name}": settings for name, settings in self.filters.items()})
+        for prefix, settings in sections.items():
+            for field in settings.frame_windows:
+                side = getattr(settings, field)
+                if side > min(width, height):
+                    raise CondtrackError(
+                        f"config key '{prefix}.{field}': a window of {side} px does not fit in the "
+                        f"{width}x{height} frame (at most {min(width, height)})"
+                    )
 
 
 def valid_methods() -> list[str]:

@@ -66,6 +66,7 @@ def track_input(
     frames_stage = config.stage("frames")
     source = registry.get("frames", frames_stage.name).factory(frames_stage.settings, input_path)
     info = source.info
+    config.check_fits_frame(info.width, info.height)
     queries = read_queries(queries_path, info) if queries_path else None
     backward_frames = int(queries.frame.max()) + 1 if queries is not None and queries.frame.max() > 0 else 0
     started = time.perf_counter()

@@ -18,6 +18,7 @@ from condtrack_cli.registry import register
 
 
 class ShiTomasiSettings(StageSettings):
+    frame_windows = ("block",)
     max_points: int = Field(300, ge=1, description="most points detected on the first frame")
     quality: float = Field(0.01, gt=0, le=1, description="keep corners whose score is at least this fraction of the best")
     min_distance: float = Field(8.0, ge=0, description="least distance between two detected points (px)")

@@ -19,6 +19,7 @@ from condtrack_cli.types import Frame, Queries, SequenceInfo
 
 
 class STKSettings(StageSettings):
+    frame_windows = ("win_size",)
     win_size: int = Field(21, ge=3, description="side of the Lucas-Kanade window (px)")
     levels: int = Field(3, ge=1, le=8, description="pyramid levels (OpenCV maxLevel = levels - 1)")
     max_iterations: int = Field(30, ge=1, description="iterations per level")
