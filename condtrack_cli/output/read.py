@@ -1,8 +1,10 @@
 """Read track files written by condtrack (CSV or HDF5) back into :class:`Tracks`.
 
 A CSV holds no frame count: its tracks span frames 0 .. the last frame that has
-a row. A point's query is its first row. HDF5 files of an unknown
-``schema_version`` are refused.
+a row. Nor does it hold queries: a point's query is taken to be its first row
+(frame 0 once backward tracking filled the frames before the query). A CSV
+whose header is not the schema's exact header line, and an HDF5 file of an
+unknown ``schema_version``, are refused (docs/schema.md).
 """
 
 from __future__ import annotations
@@ -60,19 +62,32 @@ def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
     return tracks, {"n_frames": n_frames}
 
 
+def _check_layout(tracks: Tracks) -> None:
+    """ValueError when arrays read from an HDF5 file depart from the schema's shapes or method codes."""
+    p, f = len(tracks.queries), (tracks.xy.shape[1] if tracks.xy.ndim == 3 else -1)
+    for name, array, shape in (
+        ("xy", tracks.xy, (p, f, 2)), ("cov", tracks.cov, (p, f, 2, 2)), ("visible", tracks.visible, (p, f)),
+        ("method_code", tracks.method, (p, f)), ("z", tracks.z, (p, f, 2)), ("R", tracks.R, (p, f, 2, 2)),
+    ):
+        if array.shape != shape:
+            raise ValueError(f"{name} has shape {array.shape}, expected {shape}")
+    if ((tracks.method < -1) | (tracks.method >= len(METHODS))).any():
+        raise ValueError(f"method_code outside -1 .. {len(METHODS) - 1}")
+
+
 def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
     try:
         f = h5py.File(path, "r")
     except OSError as error:
         raise CondtrackError(f"{path}: not a readable HDF5 file ({error})") from None
     with f:
-        meta = {key: (value.decode() if isinstance(value, bytes) else value) for key, value in f.attrs.items()}
-        version = meta.get("schema_version")
-        if version != SCHEMA_VERSION:
-            raise CondtrackError(
-                f"{path}: schema_version {version!r} is not supported (this condtrack reads {SCHEMA_VERSION!r})"
-            )
         try:
+            meta = {key: (value.decode() if isinstance(value, bytes) else value) for key, value in f.attrs.items()}
+            version = meta.get("schema_version")
+            if version != SCHEMA_VERSION:
+                raise CondtrackError(
+                    f"{path}: schema_version {version!r} is not supported (this condtrack reads {SCHEMA_VERSION!r})"
+                )
             t = f["tracks"]
             queries_table = f["queries"][()]
             queries = Queries(t["point_id"][()], queries_table[:, 0].astype(np.int64), queries_table[:, 1:3])
@@ -81,7 +96,9 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
             z = f["measurements/z"][()] if "measurements" in f else nan
             R = f["measurements/R"][()] if "measurements" in f else np.full(xy.shape + (2,), np.nan)
             tracks = Tracks(queries, xy, t["cov"][()], t["visible"][()].astype(bool), t["method_code"][()], z, R)
-        except (KeyError, OSError, ValueError, IndexError) as error:
+            _check_layout(tracks)
+        except (KeyError, OSError, RuntimeError, TypeError, ValueError, IndexError) as error:
+            # h5py reports damaged metadata as OSError or RuntimeError
             raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file ({error})") from None
     return tracks, meta
 

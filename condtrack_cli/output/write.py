@@ -89,7 +89,7 @@ def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, A
         _dataset(group, "xy", tracks.xy, settings, units="px", missing="NaN where the point has no state")
         _dataset(group, "cov", tracks.cov, settings, units="px^2", meaning="posterior covariance; NaN undefined, inf unbounded")
         _dataset(group, "visible", tracks.visible, settings)
-        _dataset(group, "method", np.array(tracks.point_methods(), dtype=object), settings)
+        _dataset(group, "method", np.array(tracks.point_methods(), dtype=h5py.string_dtype()), settings)
         group["method"].attrs["meaning"] = "the method that produced most of the point's frames"
         _dataset(group, "method_code", tracks.method, settings, names=",".join(METHODS),
                  meaning="per frame: index into names; -1 where no state")

@@ -1,0 +1,303 @@
+"""``condtrack compare`` and stable outputs: what golden-file checks in users' CI rely on."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import struct
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from condtrack_cli.cli import cli
+from condtrack_cli.config import OutputSettings
+from condtrack_cli.output.compare import CSV_FIELDS, HDF5_FIELDS, compare_tracks
+from condtrack_cli.output.compare_command import compare_command
+from condtrack_cli.output.read import read_tracks
+from condtrack_cli.output.write import write_tracks
+from condtrack_cli.types import Queries, SequenceInfo, Tracks
+
+P, F = 4, 6
+META = {"config": "filter:\n  method: clf\n", "method": "clf", "seed": 0}
+
+
+def make_tracks(n_frames: int = F) -> Tracks:
+    """P=4 points (ids 3, 7, 11, 20) over ``n_frames``; point 11 from frame 2 on; inf and nan covariances."""
+    rng = np.random.default_rng(7)
+    xy = rng.uniform(0, 300, (P, n_frames, 2))
+    xy[2, :2] = np.nan
+    cov = rng.uniform(0.1, 3.0, (P, n_frames, 1, 1)) * np.array([[1.0, 0.2], [0.2, 0.5]])
+    cov[1, 3] = [[np.inf, 0.0], [0.0, np.inf]]
+    cov[3] = np.nan
+    cov[2, :2] = np.nan
+    method = np.full((P, n_frames), 2, np.int8)
+    method[3] = 0
+    method[2, :2] = -1
+    visible = rng.random((P, n_frames)) > 0.2
+    visible[2, :2] = False
+    z = xy + rng.normal(0, 0.5, xy.shape)
+    queries = Queries(np.array([3, 7, 11, 20]), np.array([0, 0, 2, 0]), xy[np.arange(P), [0, 0, 2, 0]])
+    return Tracks(queries, xy, cov, visible, method, z, cov * 2)
+
+
+def edited(tracks: Tracks, **arrays: np.ndarray) -> Tracks:
+    """``tracks`` with some arrays replaced."""
+    fields = {name: getattr(tracks, name) for name in ("queries", "xy", "cov", "visible", "method", "z", "R")}
+    return Tracks(**{**fields, **arrays})
+
+
+def write(path, tracks: Tracks, settings: OutputSettings | None = None):
+    info = SequenceInfo("frames/", 320, 240, tracks.xy.shape[1], 0.0)
+    write_tracks(tracks, path, info, META, settings or OutputSettings())
+    return path
+
+
+def compare(*args) -> tuple[int, str]:
+    """Run the compare command in-process: (exit code, stdout)."""
+    result = CliRunner().invoke(compare_command, [str(arg) for arg in args])
+    return result.exit_code, result.stdout
+
+
+def run_cli(*args) -> subprocess.CompletedProcess:
+    """The real console entry point, as users' CI runs it."""
+    return subprocess.run(
+        [sys.executable, "-c", "from condtrack_cli.cli import main; main()", *map(str, args)],
+        capture_output=True, text=True, timeout=120,
+    )
+
+
+def table_rows(report: str) -> list[list[str]]:
+    """The rows (point, frame, field, A, B, |A-B|) of the report's largest-differences table."""
+    lines = report.splitlines()
+    start = lines.index("largest differences:") + 2
+    return [line.split() for line in lines[start:]]
+
+
+@pytest.fixture
+def golden(tmp_path):
+    return write(tmp_path / "golden.h5", make_tracks())
+
+
+def test_identical_files_agree_through_the_entry_point(golden, tmp_path):
+    copy = shutil.copy(golden, tmp_path / "copy.h5")
+    result = run_cli("compare", golden, copy)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("agree: ") and result.stderr == ""
+
+
+def test_a_moved_position_differs_and_is_named(golden, tmp_path):
+    tracks = make_tracks()
+    xy = tracks.xy.copy()
+    xy[1, 4, 1] += 0.002
+    moved = write(tmp_path / "moved.h5", edited(tracks, xy=xy))
+    result = run_cli("compare", golden, moved)
+    assert result.returncode == 1 and result.stderr == ""
+    assert result.stdout.startswith("differ: ")
+    assert "differing values: y 1" in result.stdout
+    point, frame, field, a, b, diff = table_rows(result.stdout)[0]
+    assert (point, frame, field) == ("7", "4", "y")
+    assert float(a) == pytest.approx(tracks.xy[1, 4, 1]) and float(b) == pytest.approx(xy[1, 4, 1])
+    assert float(diff) == pytest.approx(0.002)
+
+
+def test_a_move_within_the_tolerance_agrees(golden, tmp_path):
+    tracks = make_tracks()
+    xy = tracks.xy + 5e-5
+    assert compare(golden, write(tmp_path / "near.h5", edited(tracks, xy=xy)))[0] == 0
+    xy[0, 0, 0] += 0.01
+    far = write(tmp_path / "far.h5", edited(tracks, xy=xy))
+    assert compare(golden, far)[0] == 1
+    assert compare(golden, far, "--atol-px", "0.02")[0] == 0
+
+
+def test_csv_and_hdf5_of_the_same_tracks_agree(golden, tmp_path):
+    csv = write(tmp_path / "golden.csv", make_tracks())
+    for a, b in ((golden, csv), (csv, golden), (csv, csv)):
+        code, out = compare(a, b)
+        assert code == 0, out
+    code, out = compare(golden, csv, "--json")
+    report = json.loads(out)
+    assert report["agree"] and report["fields"] == list(CSV_FIELDS) and report["n_points"] == P
+    assert "not compared (a CSV does not hold them): n_frames, query_frame" in compare(golden, csv)[1]
+
+
+def test_a_point_without_any_position_is_not_expected_in_a_csv(tmp_path):
+    tracks = make_tracks()
+    xy = tracks.xy.copy()
+    xy[2] = np.nan
+    lost = edited(tracks, xy=xy)
+    h5, csv = write(tmp_path / "lost.h5", lost), write(tmp_path / "lost.csv", lost)
+    assert compare(h5, csv)[0] == 0
+    code, out = compare(write(tmp_path / "all.h5", tracks), csv)
+    assert code == 1 and "differing values: points 1" in out
+
+
+def test_csv_and_hdf5_of_a_tracked_sequence_agree_and_rerun_is_identical(shifted_folder, tmp_path):
+    folder, _ = shifted_folder
+    queries = tmp_path / "q.csv"
+    queries.write_text("frame,x,y,point_id\n2,120,100,5\n0,200,150,1\n3,60.5,80.25,9\n")
+    outputs = [tmp_path / "run1.h5", tmp_path / "run1.csv", tmp_path / "run2.h5"]
+    for output in outputs:
+        args = ["track", str(folder), "-p", str(queries), "-m", "clf", "-o", str(output), "-q"]
+        result = CliRunner().invoke(cli, args)
+        assert result.exit_code == 0, result.output
+    assert compare(outputs[0], outputs[1])[0] == 0
+    assert compare(outputs[1], outputs[0])[0] == 0
+    assert outputs[0].read_bytes() == outputs[2].read_bytes()
+
+
+@pytest.mark.parametrize("damage", ["missing", "truncated_h5", "truncated_csv", "not_hdf5", "other_schema"])
+def test_unreadable_input_exits_2_with_one_error_line(golden, tmp_path, damage):
+    bad = tmp_path / "bad.h5"
+    if damage == "truncated_h5":
+        bad.write_bytes(golden.read_bytes()[: golden.stat().st_size // 2])
+    elif damage == "truncated_csv":
+        text = write(tmp_path / "whole.csv", make_tracks()).read_text()
+        bad = tmp_path / "bad.csv"
+        bad.write_text(text[: len(text) - 20])
+    elif damage == "not_hdf5":
+        bad.write_text("point_id,frame\n")
+    elif damage == "other_schema":
+        import h5py
+
+        shutil.copy(golden, bad)
+        with h5py.File(bad, "r+") as f:
+            f.attrs["schema_version"] = "9.0"
+    result = CliRunner().invoke(compare_command, [str(golden), str(bad)])
+    assert result.exit_code == 2 and result.stdout == ""
+    assert result.stderr.startswith(f"Error: {bad}") and result.stderr.count("\n") == 1
+
+
+def test_unreadable_input_exits_2_through_the_entry_point(golden, tmp_path):
+    bad = tmp_path / "bad.h5"
+    bad.write_bytes(golden.read_bytes()[:1000])
+    result = run_cli("compare", bad, golden)
+    assert result.returncode == 2 and result.stdout == ""
+    assert result.stderr.startswith(f"Error: {bad}: ") and result.stderr.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    "a, b, agree",
+    [
+        (np.inf, np.nan, False), (np.nan, np.inf, False), (np.inf, 1e300, False), (np.inf, -np.inf, False),
+        (np.nan, 2.0, False), (np.inf, np.inf, True), (np.nan, np.nan, True), (2.0, 2.0 * (1 + 5e-5), True),
+        (2.0, 2.0 * (1 + 2e-4), False), (0.0, 1e-13, True),
+    ],
+)
+def test_covariance_kinds_and_relative_tolerance(a, b, agree):
+    tracks = make_tracks()
+    cov = tracks.cov.copy()
+    cov[0, 1, 0, 0] = a
+    other = tracks.cov.copy()
+    other[0, 1, 0, 0] = b
+    result = compare_tracks(edited(tracks, cov=cov), edited(tracks, cov=other))
+    assert result.agree == agree
+    assert result.counts["cov_xx"] == (0 if agree else 1)
+    assert sum(result.counts.values()) == result.counts["cov_xx"]
+
+
+def test_inf_against_nan_differs_in_files(golden, tmp_path):
+    tracks = make_tracks()
+    cov = tracks.cov.copy()
+    cov[1, 3, 0, 0] = np.nan  # was inf
+    other = write(tmp_path / "nan.csv", edited(tracks, cov=cov))
+    code, out = compare(golden, other, "--json")
+    report = json.loads(out)
+    assert code == 1 and not report["agree"] and report["counts"]["cov_xx"] == 1
+    assert report["top"][0] == {"point_id": 7, "frame": 3, "field": "cov_xx", "a": "inf", "b": "nan", "diff": None}
+
+
+def test_visibility_flips_are_allowed_up_to_the_given_number(golden, tmp_path):
+    tracks = make_tracks()
+    visible = tracks.visible.copy()
+    visible[0, 1] = ~visible[0, 1]
+    visible[3, 5] = ~visible[3, 5]
+    flipped = write(tmp_path / "flipped.h5", edited(tracks, visible=visible))
+    assert compare(golden, flipped)[0] == 1
+    assert compare(golden, flipped, "--ignore-visible-flips", "1")[0] == 1
+    code, out = compare(golden, flipped, "--ignore-visible-flips", "2")
+    assert code == 0 and "differing values: visible 2 (allowed)" in out and "largest differences" not in out
+    code, out = compare(golden, flipped, "--ignore-visible-flips", "1")
+    assert [row[:3] for row in table_rows(out)] == [["3", "1", "visible"], ["20", "5", "visible"]]
+
+
+def test_points_frames_queries_and_methods_are_compared(golden, tmp_path):
+    tracks = make_tracks()
+    fewer = Tracks(Queries(tracks.queries.point_id[:3], tracks.queries.frame[:3], tracks.queries.xy[:3]),
+                   *(getattr(tracks, name)[:3] for name in ("xy", "cov", "visible", "method", "z", "R")))
+    result = compare_tracks(tracks, fewer)
+    assert not result.agree and result.counts["points"] == 1
+    first = result.top[0]
+    assert (first.point_id, first.frame, first.field, first.a, first.b) == (20, None, "points", "present", "absent")
+
+    longer = make_tracks(F + 1)
+    longer = edited(longer, xy=np.concatenate([tracks.xy, longer.xy[:, -1:]], axis=1))
+    result = compare_tracks(tracks, longer, fields=CSV_FIELDS)
+    assert result.n_frames == F + 1 and result.counts["state"] == P  # frame F: a position in one file only
+
+    padded = {name: np.concatenate([getattr(tracks, name), np.full_like(getattr(tracks, name)[:, :1], fill)], axis=1)
+              for name, fill in (("xy", np.nan), ("cov", np.nan), ("visible", False), ("method", -1),
+                                 ("z", np.nan), ("R", np.nan))}
+    trailing = edited(tracks, **padded)  # one more frame, with no state on it
+    assert compare_tracks(tracks, trailing, fields=CSV_FIELDS).agree
+    assert compare_tracks(tracks, trailing).counts["n_frames"] == 1
+
+    moved = Queries(tracks.queries.point_id, tracks.queries.frame + 1, tracks.queries.xy)
+    assert compare_tracks(tracks, edited(tracks, queries=moved)).counts["query_frame"] == P
+    assert compare_tracks(tracks, edited(tracks, queries=moved), fields=CSV_FIELDS).agree
+
+    method = tracks.method.copy()
+    method[0, 2] = 3
+    result = compare_tracks(tracks, edited(tracks, method=method))
+    assert result.counts["method"] == 1 and (result.top[0].a, result.top[0].b) == ("clf", "cnlf")
+
+
+def test_measurements_are_compared_between_hdf5_files_only(golden, tmp_path):
+    tracks = make_tracks()
+    z = tracks.z.copy()
+    z[2, 4, 0] += 1.0
+    other = edited(tracks, z=z)
+    assert compare(golden, write(tmp_path / "z.h5", other))[0] == 1
+    assert compare(golden, write(tmp_path / "z.csv", other))[0] == 0
+    assert compare_tracks(tracks, other).counts["z_x"] == 1
+    assert set(HDF5_FIELDS) - set(CSV_FIELDS) >= {"z_x", "R_xx", "query_x", "cov_yx"}
+
+
+def test_top_differences_are_ordered_worst_first(golden, tmp_path):
+    tracks = make_tracks()
+    xy = tracks.xy.copy()
+    xy[0, 0, 0] += 0.5
+    xy[1, 1, 0] += 2.0
+    xy[3, 2, 1] += 0.001
+    result = compare_tracks(tracks, edited(tracks, xy=xy), top=2)
+    assert result.counts["x"] == 2 and result.counts["y"] == 1
+    assert [(d.point_id, d.frame, d.field) for d in result.top] == [(7, 1, "x"), (3, 0, "x")]
+    assert result.top[0].diff == pytest.approx(2.0)
+
+
+def test_csv_is_byte_stable_and_round_trips_positions(tmp_path):
+    tracks = make_tracks()
+    first, second = write(tmp_path / "a.csv", tracks), write(tmp_path / "b.csv", make_tracks())
+    assert first.read_bytes() == second.read_bytes()
+    back, _ = read_tracks(first)
+    has = tracks.has_state
+    assert np.array_equal(back.has_state, has)
+    assert np.abs(back.xy[has] - tracks.xy[has]).max() <= 5e-7 + 1e-9
+    np.testing.assert_allclose(back.cov[has], tracks.cov[has], rtol=1e-6)
+
+
+@pytest.mark.parametrize("compression", [4, 0])
+def test_hdf5_is_byte_stable_and_carries_no_timestamp(tmp_path, compression):
+    settings = OutputSettings(hdf5_compression=compression)
+    before = int(time.time())
+    first = write(tmp_path / "a.h5", make_tracks(), settings)
+    second = write(tmp_path / "b.h5", make_tracks(), settings)
+    after = int(time.time())
+    data = first.read_bytes()
+    assert data == second.read_bytes()
+    stamps = [struct.pack("<I", t) for t in range(before - 2, after + 3)]  # HDF5 stores seconds as uint32
+    assert not any(stamp in data for stamp in stamps)

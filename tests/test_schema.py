@@ -1,0 +1,199 @@
+"""The writers' output is exactly what docs/schema.md documents, and readers refuse other schemas."""
+
+from __future__ import annotations
+
+import re
+
+import h5py
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from condtrack_cli import COORDINATES, SCHEMA_VERSION
+from condtrack_cli.cli import cli
+from condtrack_cli.config import OutputSettings
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.output.read import read_tracks
+from condtrack_cli.output.write import CSV_COLUMNS, FLOAT_FORMATS, write_tracks
+from condtrack_cli.types import METHODS, Queries, SequenceInfo, Tracks
+
+from conftest import REPO
+
+SCHEMA = (REPO / "docs" / "schema.md").read_text(encoding="utf-8")
+P, F = 3, 4
+#: The metadata ``condtrack track`` passes to the writer.
+TRACK_META = {"config": "filter:\n  method: clf\n", "method": "clf", "seed": 0}
+
+
+def doc_table(heading: str) -> list[dict[str, str]]:
+    """The first markdown table after ``heading`` in docs/schema.md, as rows of {column: cell} (backticks removed)."""
+    section = SCHEMA.split(f"\n{heading}\n", 1)[1]
+    lines = [line.strip() for line in section.splitlines()]
+    start = next(i for i, line in enumerate(lines) if line.startswith("|"))
+    table = []
+    for line in lines[start:]:
+        if not line.startswith("|"):
+            break
+        table.append([cell.strip().replace("`", "") for cell in line.strip("|").split("|")])
+    header, rows = table[0], table[2:]
+    return [dict(zip(header, row)) for row in rows]
+
+
+def doc_code_block(after: str) -> str:
+    """The first fenced code block after the text ``after`` in docs/schema.md."""
+    return re.search(r"```text\n(.*?)\n```", SCHEMA.split(after, 1)[1], re.S).group(1)
+
+
+def doc_shape(cell: str) -> tuple[int, ...]:
+    """'(P, F, 2)' -> (P, F, 2) with this module's P and F."""
+    sizes = {"P": P, "F": F}
+    parts = [part.strip() for part in cell.strip("()").split(",") if part.strip()]
+    return tuple(sizes[part] if part in sizes else int(part) for part in parts)
+
+
+def small_tracks() -> Tracks:
+    """P=3 points over F=4 frames: one from frame 1 (no state before), inf and nan covariances, every method."""
+    rng = np.random.default_rng(1)
+    queries = Queries(np.array([4, 9, 2]), np.array([0, 1, 0]), rng.uniform(0, 50, (P, 2)))
+    xy = rng.uniform(0, 50, (P, F, 2))
+    xy[1, 0] = np.nan
+    cov = np.tile(np.diag([0.5, 2.0]), (P, F, 1, 1))
+    cov[0, 2] = np.inf
+    cov[2, :] = np.nan
+    method = np.array([[2, 2, 3, 3], [-1, 1, 1, 1], [0, 0, 0, 0]], np.int8)
+    visible = np.array([[1, 1, 0, 1], [0, 1, 1, 1], [1, 0, 1, 1]], bool)
+    return Tracks(queries, xy, cov, visible, method, xy + 0.1, cov.copy())
+
+
+def write_small(path, settings: OutputSettings | None = None) -> None:
+    info = SequenceInfo("frames/", 64, 48, F, 0.0)
+    write_tracks(small_tracks(), path, info, TRACK_META, settings or OutputSettings())
+
+
+def h5_layout(path) -> dict[str, tuple[tuple[int, ...], np.dtype, dict]]:
+    """Every dataset of the file by absolute name: (shape, dtype, attributes)."""
+    layout = {}
+
+    def visit(name: str, obj) -> None:
+        if isinstance(obj, h5py.Dataset):
+            layout["/" + name] = (obj.shape, obj.dtype, dict(obj.attrs))
+
+    with h5py.File(path, "r") as f:
+        f.visititems(visit)
+    return layout
+
+
+def doc_dtype_matches(doc: str, dtype: np.dtype) -> bool:
+    if doc == "string":
+        info = h5py.check_string_dtype(dtype)
+        return info is not None and info.encoding == "utf-8" and info.length is None
+    return dtype == np.dtype(doc)
+
+
+def test_schema_version_and_pixel_convention_are_documented():
+    assert f"Schema version: `{SCHEMA_VERSION}`" in SCHEMA
+    assert doc_code_block("## Pixel convention") == COORDINATES
+
+
+def test_csv_columns_formats_and_header_match_the_doc(tmp_path):
+    columns = doc_table("## CSV")
+    assert tuple(row["column"] for row in columns) == CSV_COLUMNS
+    for row in columns:
+        expected = FLOAT_FORMATS.get(row["column"])
+        assert row["format"] == (expected or row["format"]), row["column"]
+        assert (row["type"] == "float") == (expected is not None), row["column"]
+    header = doc_code_block("The first line is the header:")
+    assert header == ",".join(CSV_COLUMNS)
+    path = tmp_path / "t.csv"
+    write_small(path)
+    lines = path.read_bytes().decode("ascii").split("\n")
+    assert lines[0] == header and lines[-1] == ""
+    rows = [line.split(",") for line in lines[1:-1]]
+    assert all(len(row) == len(CSV_COLUMNS) for row in rows)
+    assert len(rows) == P * F - 1  # point 9 has no state on frame 0
+    assert {row[8] for row in rows} <= set(METHODS)
+    assert rows[2][4:7] == ["inf", "inf", "inf"] and rows[-1][4:7] == ["nan", "nan", "nan"]
+
+
+def test_method_codes_match_the_doc(tmp_path):
+    table = doc_table("## Methods")
+    assert [(int(row["code"]), row["name"]) for row in table] == [(-1, "")] + list(enumerate(METHODS))
+    path = tmp_path / "t.h5"
+    write_small(path)
+    with h5py.File(path) as f:
+        assert f["tracks/method_code"].attrs["names"] == ",".join(METHODS)
+        assert [m.decode() for m in f["tracks/method"][()]] == ["clf", "mdr", "stk"]
+
+
+@pytest.mark.parametrize("store_measurements", [True, False])
+@pytest.mark.parametrize("compression", [4, 0])
+def test_hdf5_datasets_match_the_doc(tmp_path, store_measurements, compression):
+    path = tmp_path / "t.h5"
+    write_small(path, OutputSettings(hdf5_compression=compression, store_measurements=store_measurements))
+    documented = {
+        row["dataset"]: row for row in doc_table("### Datasets")
+        if row["written"] == "always" or store_measurements
+    }
+    layout = h5_layout(path)
+    assert set(layout) == set(documented)
+    for name, row in documented.items():
+        shape, dtype, attributes = layout[name]
+        assert shape == doc_shape(row["shape"]), name
+        assert doc_dtype_matches(row["dtype"], dtype), (name, dtype)
+        assert set(attributes) == {a.strip() for a in row["attributes"].split(",") if a.strip()}, name
+        assert all(isinstance(value, str) for value in attributes.values()), name
+    assert layout["/queries"][2]["columns"] == "frame,x,y"
+
+
+def test_hdf5_root_attributes_match_the_doc(tmp_path):
+    path = tmp_path / "t.h5"
+    write_small(path)
+    documented = {row["attribute"]: row["type"] for row in doc_table("### Root attributes")}
+    with h5py.File(path) as f:
+        assert set(f.attrs) == set(documented)
+        for name, kind in documented.items():
+            value = f.attrs[name]
+            assert isinstance(value, str) if kind == "string" else np.asarray(value).dtype == np.dtype(kind), name
+        assert f.attrs["schema_version"] == SCHEMA_VERSION and f.attrs["coordinates"] == COORDINATES
+
+
+def test_track_command_writes_the_documented_root_attributes(shifted_folder, tmp_path):
+    folder, _ = shifted_folder
+    queries = tmp_path / "q.csv"
+    queries.write_text("frame,x,y\n0,120,100\n0,200,150\n")
+    path = tmp_path / "t.h5"
+    result = CliRunner().invoke(cli, ["track", str(folder), "-p", str(queries), "-m", "stk", "-o", str(path), "-q"])
+    assert result.exit_code == 0, result.output
+    documented = {row["attribute"] for row in doc_table("### Root attributes")}
+    with h5py.File(path) as f:
+        assert set(f.attrs) == documented
+
+
+def test_a_csv_with_another_header_is_refused_naming_the_expected_one(tmp_path):
+    path = tmp_path / "old.csv"
+    path.write_text("point_id,frame,x,y,visible\n0,0,1.0,2.0,1\n")
+    with pytest.raises(CondtrackError, match=re.escape(f"expected the header {','.join(CSV_COLUMNS)}")):
+        read_tracks(path)
+    path.write_text("# schema 1.0\n" + ",".join(CSV_COLUMNS) + "\n")
+    with pytest.raises(CondtrackError, match="not a condtrack CSV"):
+        read_tracks(path)
+
+
+def test_an_hdf5_of_another_schema_version_is_refused_naming_both(tmp_path):
+    path = tmp_path / "t.h5"
+    write_small(path)
+    with h5py.File(path, "r+") as f:
+        f.attrs["schema_version"] = "0.9"
+    message = f"schema_version '0.9' is not supported (this condtrack reads '{SCHEMA_VERSION}')"
+    with pytest.raises(CondtrackError, match=re.escape(message)):
+        read_tracks(path)
+
+
+def test_an_hdf5_whose_shapes_depart_from_the_schema_is_refused(tmp_path):
+    path = tmp_path / "t.h5"
+    write_small(path)
+    with h5py.File(path, "r+") as f:
+        del f["tracks/visible"]
+        f["tracks/visible"] = np.ones((P, F + 1), bool)
+    with pytest.raises(CondtrackError, match=r"damaged or incomplete .*visible has shape \(3, 5\), expected \(3, 4\)"):
+        read_tracks(path)
