@@ -50,3 +50,16 @@ def shifted_folder(tmp_path, photo) -> tuple[Path, np.ndarray]:
     for k, (dx, dy) in enumerate(shifts):
         cv2.imwrite(str(folder / f"f{k}.png"), translate(crop, dx, dy))
     return folder, shifts
+
+
+@pytest.fixture(autouse=True)
+def fresh_condtrack_logger():
+    """Undo what an in-process CLI run did to the ``condtrack`` logger (level, handlers)."""
+    yield
+    import logging
+
+    logger = logging.getLogger("condtrack")
+    for handler in list(logger.handlers):
+        logger.removeHandler(handler)
+    logger.setLevel(logging.NOTSET)
+    logger.propagate = True

@@ -1,3 +1,3 @@
 """The filters: STK and MDR baselines, the conditional linear (CLF) and nonlinear (CNLF) filters."""
 
-from condtrack_cli.filters import stk  # noqa: F401  (registers the stage)
+from condtrack_cli.filters import clf, stk  # noqa: F401  (register the stages)
