@@ -52,7 +52,7 @@ NAMED_SECTIONS = ("frames", "detect", "motion", "measure")
 DEFAULT_NAMES = {"frames": "auto", "detect": "shi_tomasi", "motion": "robust", "measure": "ssd"}
 
 #: Method used when neither the config nor ``-m`` names one.
-DEFAULT_METHOD = "stk"
+DEFAULT_METHOD = "clf"
 
 SECTION_DOCS = {
     "frames": "how frames are read (folder of images or video)",

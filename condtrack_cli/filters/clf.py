@@ -47,6 +47,10 @@ class CLFSettings(StageSettings):
     nominal_r: float = Field(1.0, gt=0, description="variance sizing the search before a point has a finite R_k (px^2)")
     gate_r_min: float = Field(0.1, gt=0, description="least variance of the R sizing the search (px^2)")
     gate_r_max: float = Field(25.0, gt=0, description="largest variance of the R sizing the search (px^2)")
+    reference_update: bool = Field(True, description="refresh a point's reference patch when it no longer matches well")
+    update_residual: float = Field(
+        4.0, gt=1, description="refresh when the match residual exceeds this many times its noise-only expectation"
+    )
 
 
 class MDRSettings(StageSettings):
@@ -66,7 +70,7 @@ class MDRTracker(Tracker):
         super().__init__(queries, info)
         self.settings = settings
         self.motion = build_stage(config, "motion")
-        self.q_floor = config.stage("motion").settings.q_floor
+        self.motion_settings = config.stage("motion").settings
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         self.cov[index] = self.settings.initial_std**2 * np.eye(2)
@@ -75,7 +79,8 @@ class MDRTracker(Tracker):
         fit = self.motion.fit(prev, frame)
         x = self.xy[index]
         A, b = linear_dynamics(fit, x)
-        return kalman.predict(x, self.cov[index], A, b, state_noise(fit, x, self.q_floor))
+        m = self.motion_settings
+        return kalman.predict(x, self.cov[index], A, b, state_noise(fit, x, m.q_floor, m.q_misfit, m.misfit_window))
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
         self.xy[index], self.cov[index] = self._predict(index, prev, frame)
@@ -104,6 +109,8 @@ class CLFTracker(MDRTracker):
         self.templates[index] = self.measure.templates(frame.gray, self.xy[index])
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
+        self.visible_before = self.visible.copy()
+        x_prev = self.xy[index].copy()
         x_pred, sigma_pred = self._predict(index, prev, frame)
         m = self.measure.measure(frame.gray, self.templates[index], x_pred, sigma_pred + self.gate_r[index], self.noise_sigma)
         finite_r = np.where(m.informative[:, None, None], m.R, np.eye(2))
@@ -113,10 +120,39 @@ class CLFTracker(MDRTracker):
         self.xy[index], self.cov[index] = kalman.update(x_pred, sigma_pred, m.z, finite_r, valid)
         self.visible[index] = valid
         self.z[index], self.R[index] = m.z, m.R
+        if self.settings.reference_update:
+            self._refresh_references(index, prev, x_prev, frame, valid, m.residual)
         s = self.settings
         clamped = np.clip(finite_r, -s.gate_r_max, s.gate_r_max)
         clamped[:, [0, 1], [0, 1]] = np.clip(finite_r[:, [0, 1], [0, 1]], s.gate_r_min, s.gate_r_max)
         self.gate_r[index[valid]] = clamped[valid]
+
+
+    def _refresh_references(
+        self, index: np.ndarray, prev: Frame, x_prev: np.ndarray, frame: Frame, valid: np.ndarray, residual: np.ndarray
+    ) -> None:
+        """Reference update (paper §5.2): re-take the reference patch at the posterior position.
+
+        With m template pixels and sigma the acquisition noise, m 2 sigma^2 is the
+        SSD expected from noise alone. A point's reference is refreshed when
+        (1) it was found this frame and the previous one (finite R_k in the gate),
+        (2) its residual r_k(z_k) exceeds ``update_residual`` m 2 sigma^2: the patch
+        has drifted away from the reference, and (3) the new patch matches the
+        patch at the previous estimate in the previous frame within
+        ``update_residual`` / 2 m 2 sigma^2: it changed slowly, as a deforming
+        surface does. An occluder edge creeping over the patch changes it abruptly
+        from one frame to the next and fails (3); a whole occluder fails (1).
+        """
+        s = self.settings
+        noise_ssd = self.templates.shape[1] * self.templates.shape[2] * 2 * self.noise_sigma**2
+        candidates = np.flatnonzero(valid & self.visible_before[index] & (residual > s.update_residual * noise_ssd))
+        if not candidates.size:
+            return
+        refresh = index[candidates]
+        patches = self.measure.templates(frame.gray, self.xy[refresh])
+        before = self.measure.templates(prev.gray, x_prev[candidates])
+        steady = ((patches - before) ** 2).sum(axis=(1, 2)) <= s.update_residual / 2 * noise_ssd
+        self.templates[refresh[steady]] = patches[steady]
 
 
 @register("filter", "mdr", MDRSettings, "MDR baseline: the global robust motion alone, no measurement")

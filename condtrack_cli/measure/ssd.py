@@ -86,11 +86,13 @@ _IMMERKAER = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 class SSDSettings(StageSettings):
     """Settings of the SSD measurement (paper §5.2)."""
 
+    frame_windows = ("template",)
+
     template: int = Field(11, ge=3, le=63, description="side t of the reference patch (px, odd)")
     support: int = Field(7, ge=3, le=15, description="side n of the support W(z_k) of the response D_k (px, odd)")
     gamma: float = Field(9.21, gt=0, description="gate nu^T S^-1 nu <= gamma (9.21: chi-square, 2 dof, 99%)")
     search_min: int = Field(2, ge=1, le=32, description="least search half-size (px); the gate holds this square")
-    search_max: int = Field(8, ge=1, le=32, description="largest search half-size (px)")
+    search_max: int = Field(16, ge=1, le=32, description="largest search half-size (px)")
     noise_sigma: float | None = Field(
         None, gt=0, description="acquisition noise std (grey levels); null: estimated on the images (Immerkær)"
     )
