@@ -1,0 +1,103 @@
+"""What the CLF and the CNLF share: each point's reference patch, its measurement in the gate, its update.
+
+The search region must be sized before R_k is known (DESIGN.md §3): it uses
+S = S_pred + R_gate, S_pred the predicted covariance of the point (CLF:
+Sigma_{k|k-1}; CNLF: the mixture's second moment) and R_gate the point's last
+finite R_k (the configured nominal one before the first), clamped to
+[gate_r_min, gate_r_max]. A measurement is used (and the point is visible) when
+R_k is finite and z_k lies in the gate nu^T (S_pred + R_k)^-1 nu <= gamma (§3.2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import Field
+
+from condtrack_cli.config import StageSettings
+from condtrack_cli.filters import kalman
+from condtrack_cli.types import Frame
+
+
+class MeasuredFilterSettings(StageSettings):
+    """Settings shared by the filters that measure a reference patch (CLF, CNLF)."""
+
+    initial_std: float = Field(0.5, gt=0, description="std of the position at the query frame (px)")
+    nominal_r: float = Field(1.0, gt=0, description="variance sizing the search before a point has a finite R_k (px^2)")
+    gate_r_min: float = Field(0.1, gt=0, description="least variance of the R sizing the search (px^2)")
+    gate_r_max: float = Field(25.0, gt=0, description="largest variance of the R sizing the search (px^2)")
+    reference_update: bool = Field(True, description="refresh a point's reference patch when it no longer matches well")
+    update_residual: float = Field(
+        4.0, gt=1, description="refresh when the match residual exceeds this many times its noise-only expectation"
+    )
+
+
+@dataclass(frozen=True)
+class GatedMeasurement:
+    """A measurement of n points: z (n, 2), R (n, 2, 2) raw (inf where uninformative),
+    R_used (n, 2, 2) finite (identity where R is inf), valid (n,) bool, residual (n,)."""
+
+    z: np.ndarray
+    R: np.ndarray
+    R_used: np.ndarray
+    valid: np.ndarray
+    residual: np.ndarray
+
+
+class ReferenceMatcher:
+    """Reference patches of P points and their gated measurement (paper §5.2, §3.2)."""
+
+    def __init__(self, measure, settings: MeasuredFilterSettings, n_points: int):
+        self.measure, self.settings = measure, settings
+        t = measure.settings.template
+        self.templates = np.zeros((n_points, t, t), np.float32)
+        self.gate_r = np.repeat(settings.nominal_r * np.eye(2)[None], n_points, axis=0)
+        self.noise_sigma: float | None = None
+
+    def start(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> None:
+        """Take the reference patches of points ``index`` at (n, 2) ``xy`` in their query frame."""
+        if self.noise_sigma is None:
+            self.noise_sigma = self.measure.noise_sigma(frame.gray)
+        self.templates[index] = self.measure.templates(frame.gray, xy)
+
+    def measure_in_gate(self, index: np.ndarray, frame: Frame, predicted: np.ndarray, s_pred: np.ndarray) -> GatedMeasurement:
+        """Match points ``index`` around (n, 2) ``predicted`` with predicted covariance (n, 2, 2) ``s_pred``."""
+        m = self.measure.measure(frame.gray, self.templates[index], predicted, s_pred + self.gate_r[index], self.noise_sigma)
+        r_used = np.where(m.informative[:, None, None], m.R, np.eye(2))
+        nu = np.where(m.informative[:, None], m.z - predicted, 0.0)
+        valid = m.informative & (kalman.mahalanobis2(nu, s_pred + r_used) <= self.measure.settings.gamma)
+        s = self.settings
+        clamped = np.clip(r_used, -s.gate_r_max, s.gate_r_max)
+        clamped[:, [0, 1], [0, 1]] = np.clip(r_used[:, [0, 1], [0, 1]], s.gate_r_min, s.gate_r_max)
+        self.gate_r[index[valid]] = clamped[valid]
+        return GatedMeasurement(m.z, m.R, r_used, valid, m.residual)
+
+    def refresh(
+        self, index: np.ndarray, prev: Frame, x_prev: np.ndarray, frame: Frame, x_post: np.ndarray,
+        found_before: np.ndarray, measured: GatedMeasurement,
+    ) -> None:
+        """Reference update (paper §5.2): re-take the reference patch at the posterior position ``x_post``.
+
+        With m template pixels and sigma the acquisition noise, m 2 sigma^2 is the
+        SSD expected from noise alone. A point's reference is refreshed when
+        (1) it was found this frame and the previous one (``found_before``; finite
+        R_k in the gate), (2) its residual r_k(z_k) exceeds ``update_residual``
+        m 2 sigma^2: the patch has drifted away from the reference, and (3) the new
+        patch matches the patch at the previous estimate ``x_prev`` in the previous
+        frame within ``update_residual`` / 2 m 2 sigma^2: it changed slowly, as a
+        deforming surface does. An occluder edge creeping over the patch changes
+        it abruptly from one frame to the next and fails (3); a whole occluder
+        fails (1). x_prev, x_post: (n, 2); found_before: (n,) bool.
+        """
+        s = self.settings
+        if not s.reference_update:
+            return
+        noise_ssd = self.templates.shape[1] * self.templates.shape[2] * 2 * self.noise_sigma**2
+        candidates = np.flatnonzero(measured.valid & found_before & (measured.residual > s.update_residual * noise_ssd))
+        if not candidates.size:
+            return
+        patches = self.measure.templates(frame.gray, x_post[candidates])
+        before = self.measure.templates(prev.gray, x_prev[candidates])
+        steady = ((patches - before) ** 2).sum(axis=(1, 2)) <= s.update_residual / 2 * noise_ssd
+        self.templates[index[candidates[steady]]] = patches[steady]
