@@ -1,3 +1,3 @@
-"""The filters: STK and MDR baselines, the conditional linear (CLF) and nonlinear (CNLF) filters."""
+"""The filters: STK and MDR baselines, the conditional linear (CLF) and nonlinear (CNLF) filters, and ``auto``."""
 
-from condtrack_cli.filters import clf, stk  # noqa: F401  (register the stages)
+from condtrack_cli.filters import auto, clf, cnlf, stk  # noqa: F401  (register the stages)

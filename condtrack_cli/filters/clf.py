@@ -85,9 +85,10 @@ class CLFTracker(MDRTracker):
 
     method = "clf"
 
-    def __init__(self, settings: CLFSettings, queries: Queries, info: SequenceInfo, config: Config):
+    def __init__(self, settings: CLFSettings, queries: Queries, info: SequenceInfo, config: Config,
+                 reference: ReferenceMatcher | None = None):
         super().__init__(settings, queries, info, config)
-        self.reference = ReferenceMatcher(build_stage(config, "measure"), settings, len(queries))
+        self.reference = reference or ReferenceMatcher(build_stage(config, "measure"), settings, len(queries))
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         super()._start(index, frame)

@@ -31,6 +31,9 @@ class MeasuredFilterSettings(StageSettings):
     update_residual: float = Field(
         4.0, gt=1, description="refresh when the match residual exceeds this many times its noise-only expectation"
     )
+    update_abruptness: float = Field(
+        0.8, gt=0, le=1, description="no refresh when more than this share of the residual appeared since the last frame"
+    )
 
 
 @dataclass(frozen=True)
@@ -83,12 +86,13 @@ class ReferenceMatcher:
         SSD expected from noise alone. A point's reference is refreshed when
         (1) it was found this frame and the previous one (``found_before``; finite
         R_k in the gate), (2) its residual r_k(z_k) exceeds ``update_residual``
-        m 2 sigma^2: the patch has drifted away from the reference, and (3) the new
-        patch matches the patch at the previous estimate ``x_prev`` in the previous
-        frame within ``update_residual`` / 2 m 2 sigma^2: it changed slowly, as a
-        deforming surface does. An occluder edge creeping over the patch changes
-        it abruptly from one frame to the next and fails (3); a whole occluder
-        fails (1). x_prev, x_post: (n, 2); found_before: (n,) bool.
+        m 2 sigma^2: the patch has drifted away from the reference, and (3) the
+        change was gradual: the SSD between the new patch and the patch at the
+        previous estimate ``x_prev`` in the previous frame is at most
+        ``update_abruptness`` r_k(z_k), i.e. the drift did not all happen since the
+        last frame. An occluder edge creeping over a clean patch makes nearly the
+        whole residual appear in one frame and fails (3); a whole occluder fails
+        (1). x_prev, x_post: (n, 2); found_before: (n,) bool.
         """
         s = self.settings
         if not s.reference_update:
@@ -99,5 +103,5 @@ class ReferenceMatcher:
             return
         patches = self.measure.templates(frame.gray, x_post[candidates])
         before = self.measure.templates(prev.gray, x_prev[candidates])
-        steady = ((patches - before) ** 2).sum(axis=(1, 2)) <= s.update_residual / 2 * noise_ssd
+        steady = ((patches - before) ** 2).sum(axis=(1, 2)) <= s.update_abruptness * measured.residual[candidates]
         self.templates[index[candidates[steady]]] = patches[steady]

@@ -1,0 +1,226 @@
+"""CNLF: the conditional nonlinear filter (paper §4, §5.1 local case, Fig. 2).
+
+Each point carries N weighted particles x^(i) (paper: N = 100). Per frame, for
+all started points and all their particles at once:
+
+- model: the local robust motion on a window around each particle gives the
+  mean x^(i) + P(x^(i)) theta_k(x^(i)) =: mu^(i) and Q_k^(i) of eq. (5)
+  (``motion/local.py``: one shared field per frame, sampled at the particles);
+- measure: z_k and R_k in the gate, whose S is the second moment of the
+  mixture sum_i w^(i) N(mu^(i), Q^(i)) (paper §5.3) about its mean;
+- propagate with the optimal proposal, closed form for a linear Gaussian
+  measurement (eq. 11): C = (Q^-1 + R^-1)^-1, m^(i) = C (Q^-1 mu^(i) + R^-1 z),
+  x_k^(i) ~ N(m^(i), C); with no usable measurement the proposal is the
+  dynamics N(mu^(i), Q^(i)) and the weights do not change;
+- weight (eq. 4): log w^(i) += log N(z; mu^(i), R + Q^(i)), normalised in log space;
+- resample (systematic, or residual) when the effective sample size
+  1 / sum w^2 falls below ``ess_fraction`` N; ancestry is kept;
+- estimate: the trajectory is the weighted mean of the particle *paths*
+  x_{0:k}^(i) with the final weights (the paper's 1/N is a typo for
+  normalised weights), computed in ``finish``; the reported covariance on
+  each frame is the weighted covariance of that frame's particles.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+
+from condtrack_cli.config import Config
+from condtrack_cli.filters.base import Tracker
+from condtrack_cli.filters.clf import build_stage
+from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMatcher
+from condtrack_cli.filters.resampling import RESAMPLERS, normalise
+from condtrack_cli.motion.local import LocalMotion
+from condtrack_cli.registry import register
+from condtrack_cli.types import FrameEstimate, Frame, Queries, SequenceInfo, Tracks
+
+
+class CNLFSettings(MeasuredFilterSettings):
+    particles: int = Field(100, ge=1, le=10000, description="particles per point (the paper's N = 100)")
+    ess_fraction: float = Field(0.5, gt=0, le=1, description="resample when the effective sample size falls below this x N")
+    resampling: Literal["systematic", "residual"] = Field("systematic", description="resampling scheme")
+
+
+def inverse2(m: np.ndarray) -> np.ndarray:
+    """Inverses of (..., 2, 2) symmetric positive-definite matrices, in closed form."""
+    a, b, d = m[..., 0, 0], m[..., 0, 1], m[..., 1, 1]
+    det = a * d - b * b
+    out = np.empty_like(m)
+    out[..., 0, 0], out[..., 1, 1] = d / det, a / det
+    out[..., 0, 1] = out[..., 1, 0] = -b / det
+    return out
+
+
+def log_gauss2(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """log N(x; mean, cov) for (..., 2) points and (..., 2, 2) covariances."""
+    d = x - mean
+    inv = inverse2(cov)
+    quad = np.einsum("...i,...ij,...j->...", d, inv, d)
+    det = cov[..., 0, 0] * cov[..., 1, 1] - cov[..., 0, 1] ** 2
+    return -0.5 * quad - 0.5 * np.log(det) - np.log(2 * np.pi)
+
+
+def sample_gauss2(rng: np.random.Generator, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Draws from N(mean, cov), (..., 2) and (..., 2, 2), with a closed-form 2x2 Cholesky factor."""
+    a, b, d = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
+    l11 = np.sqrt(a)
+    l21 = b / l11
+    l22 = np.sqrt(np.maximum(d - l21 * l21, 0.0))
+    e = rng.standard_normal(mean.shape)
+    return mean + np.stack([l11 * e[..., 0], l21 * e[..., 0] + l22 * e[..., 1]], axis=-1)
+
+
+def mixture_moments(log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean (n, 2) and covariance (n, 2, 2) of sum_i w^(i) N(mu^(i), Q^(i)) (the CNLF's gate, paper §5.3).
+
+    log_w: (n, N) normalised log-weights; mu: (n, N, 2); Q: (n, N, 2, 2).
+    """
+    w = np.exp(log_w)[..., None]
+    mean = (w * mu).sum(axis=1)
+    d = mu - mean[:, None]
+    return mean, (w[..., None] * (Q + np.einsum("pni,pnj->pnij", d, d))).sum(axis=1)
+
+
+def propagate(
+    rng: np.random.Generator, log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray, z: np.ndarray, R: np.ndarray,
+    valid: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Draw the new particles from the optimal proposal and update the weights (Fig. 2).
+
+    log_w (n, N) normalised; mu (n, N, 2) = x + P(x) theta(x); Q (n, N, 2, 2);
+    z (n, 2); R (n, 2, 2) finite; valid (n,): where False, the proposal is the
+    dynamics N(mu, Q) and the weights stay. Returns particles (n, N, 2) and
+    normalised log-weights (n, N).
+    """
+    R = np.broadcast_to(R[:, None], Q.shape)
+    zz = np.broadcast_to(z[:, None], mu.shape)
+    q_inv, r_inv = inverse2(Q), inverse2(R)
+    C = inverse2(q_inv + r_inv)  # eq. (11): C_k = (Q^-1 + R^-1)^-1
+    m = np.einsum("pnij,pnj->pni", C, np.einsum("pnij,pnj->pni", q_inv, mu) + np.einsum("pnij,pnj->pni", r_inv, zz))
+    use = valid[:, None, None]
+    particles = sample_gauss2(rng, np.where(use, m, mu), np.where(use[..., None], C, Q))
+    with np.errstate(invalid="ignore"):
+        log_like = log_gauss2(np.where(use, zz, mu), mu, R + Q)  # eq. (4): p(z | x_{k-1}) = N(z; mu, R + Q)
+    return particles, normalise(np.where(valid[:, None], log_w + log_like, log_w))
+
+
+def resample(rng: np.random.Generator, log_w: np.ndarray, settings: CNLFSettings) -> np.ndarray:
+    """(n, N) ancestor indices: resampled rows where the effective sample size < ess_fraction N, identity elsewhere.
+
+    ``log_w`` (n, N) is reset to uniform in place on the resampled rows.
+    """
+    n, count = log_w.shape
+    picks = np.broadcast_to(np.arange(count), (n, count)).copy()
+    weights = np.exp(log_w)
+    degenerate = np.flatnonzero(1.0 / (weights**2).sum(axis=1) < settings.ess_fraction * count)
+    if degenerate.size:
+        picks[degenerate] = RESAMPLERS[settings.resampling](rng, weights[degenerate])
+        log_w[degenerate] = -np.log(count)
+    return picks
+
+
+class CNLFTracker(Tracker):
+    """Particle filter with the optimal proposal, vectorised over points and particles: arrays (P, N, ...)."""
+
+    method = "cnlf"
+
+    def __init__(self, settings: CNLFSettings, queries: Queries, info: SequenceInfo, config: Config,
+                 rng: np.random.Generator, reference: ReferenceMatcher | None = None):
+        super().__init__(queries, info)
+        self.settings, self.rng = settings, rng
+        self.local = LocalMotion(config.stage("motion").settings)
+        self.reference = reference or ReferenceMatcher(build_stage(config, "measure"), settings, len(queries))
+        p, n = len(queries), settings.particles
+        self.particles = np.full((p, n, 2), np.nan)
+        self.log_w = np.full((p, n), -np.log(n))
+        self.lineage_start = np.full(p, -1)  #: pass frame at which each point's particles were (re)drawn
+        self.particle_history: list[np.ndarray] = []  #: per frame, (P, N, 2) particles
+        self.ancestor_history: list[np.ndarray] = []  #: per frame, (P, N) index of each particle's parent
+
+    def step(self, frame: Frame, prev: Frame | None) -> FrameEstimate:
+        self.begin_frame()
+        estimate = super().step(frame, prev)
+        self.end_frame()
+        return estimate
+
+    def begin_frame(self) -> None:
+        """Before a frame: no particle has been resampled yet (each is its own parent)."""
+        self.ancestors = np.broadcast_to(np.arange(self.settings.particles), self.log_w.shape).copy()
+
+    def end_frame(self) -> None:
+        """After a frame: keep its particles and their parents for the path estimate."""
+        self.particle_history.append(self.particles.copy())
+        self.ancestor_history.append(self.ancestors)
+
+    def adopt(self, index: np.ndarray, frame_index: int, xy: np.ndarray, cov: np.ndarray) -> None:
+        """(Re)start points ``index`` with particles drawn from N(xy (n, 2), cov (n, 2, 2)), equal weights."""
+        n = self.settings.particles
+        self.particles[index] = sample_gauss2(self.rng, np.repeat(xy[:, None], n, 1), np.repeat(cov[:, None], n, 1))
+        self.log_w[index] = -np.log(n)
+        self.lineage_start[index] = frame_index
+        self._report(index)
+
+    def release(self, index: np.ndarray) -> None:
+        """Points ``index`` leave this filter: their frames keep the estimates already reported."""
+        self.lineage_start[index] = -1
+
+    def _start(self, index: np.ndarray, frame: Frame) -> None:
+        self.reference.start(index, frame, self.xy[index])
+        s = self.settings
+        self.adopt(index, frame.index, self.xy[index], np.repeat(s.initial_std**2 * np.eye(2)[None], index.size, 0))
+
+    def _report(self, index: np.ndarray) -> None:
+        """xy and cov of points ``index``: the weighted mean and covariance of the current particles."""
+        w = np.exp(self.log_w[index])[..., None]  # (n, N, 1)
+        x = self.particles[index]
+        mean = (w * x).sum(axis=1)
+        d = x - mean[:, None]
+        self.xy[index] = mean
+        self.cov[index] = np.einsum("pn,pni,pnj->pij", w[..., 0], d, d)
+
+    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
+        x_prev = self.xy[index].copy()
+        found_before = self.visible[index].copy()
+        field = self.local.field(prev, frame)
+        x = self.particles[index]  # (n, N, 2)
+        mu = x + field.displacement(x)  # eq. (5) mean
+        Q = field.noise(x)  # (n, N, 2, 2)
+        measured = self.reference.measure_in_gate(index, frame, *mixture_moments(self.log_w[index], mu, Q))
+        particles, log_w = propagate(self.rng, self.log_w[index], mu, Q, measured.z, measured.R_used, measured.valid)
+        picks = resample(self.rng, log_w, self.settings)
+        self.particles[index] = np.take_along_axis(particles, picks[..., None], axis=1)
+        self.ancestors[index] = picks
+        self.log_w[index] = log_w
+        self._report(index)
+        self.visible[index] = measured.valid
+        self.z[index], self.R[index] = measured.z, measured.R
+        self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
+
+    def finish(self, history: list[FrameEstimate]) -> Tracks:
+        """The trajectory estimate: the weighted mean of the particle paths with the final weights."""
+        tracks = super().finish(history)
+        return dataclasses.replace(tracks, xy=self.path_means(tracks.xy))
+
+    def path_means(self, xy: np.ndarray) -> np.ndarray:
+        """(P, F, 2) ``xy`` with the weighted path means on the frames of each point's current particle lineage."""
+        xy = xy.copy()
+        weights = np.exp(self.log_w)[..., None]  # (P, N, 1)
+        lineage = np.broadcast_to(np.arange(self.settings.particles), self.log_w.shape).copy()
+        rows = np.arange(len(self.log_w))[:, None]
+        for j in range(len(self.particle_history) - 1, -1, -1):
+            paths = self.particle_history[j][rows, lineage]  # (P, N, 2): each final particle's ancestor at frame j
+            inside = (self.lineage_start <= j) & (self.lineage_start >= 0)
+            with np.errstate(invalid="ignore"):
+                xy[inside, j] = (weights[inside] * paths[inside]).sum(axis=1)
+            lineage = np.take_along_axis(self.ancestor_history[j], lineage, axis=1)
+        return xy
+
+
+@register("filter", "cnlf", CNLFSettings, "conditional nonlinear filter (paper §4, Fig. 2): particles, local motion, optimal proposal")
+def make_cnlf(settings: CNLFSettings, queries: Queries, info: SequenceInfo, config: Config, rng: np.random.Generator,
+              **_context) -> CNLFTracker:
+    return CNLFTracker(settings, queries, info, config, rng)

@@ -1,0 +1,49 @@
+"""Particle weights and resampling schemes, vectorised over points: arrays (n points, N particles).
+
+Schemes are looked up by name in ``RESAMPLERS``; each maps normalised weights
+(n, N) to ancestor indices (n, N) with one random draw per row.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def normalise(log_w: np.ndarray) -> np.ndarray:
+    """(n, N) log-weights -> normalised log-weights (each row sums to 1 in linear space)."""
+    top = log_w.max(axis=1, keepdims=True)
+    return log_w - (top + np.log(np.exp(log_w - top).sum(axis=1, keepdims=True)))
+
+
+def _row_searchsorted(edges: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Per row, the index of the first edge > value: (n, K) increasing edges in [0, 1], (n, M) values in [0, 1)."""
+    n, k = edges.shape
+    rows = np.arange(n)[:, None]
+    found = np.searchsorted((edges + 2 * rows).ravel(), (values + 2 * rows).ravel(), side="right")
+    return np.minimum(found.reshape(values.shape) - rows * k, k - 1)
+
+
+def systematic(rng: np.random.Generator, weights: np.ndarray) -> np.ndarray:
+    """(n, N) ancestor indices drawn by systematic resampling of (n, N) normalised weights."""
+    n, count = weights.shape
+    u = (rng.random((n, 1)) + np.arange(count)) / count  # one uniform per row, N evenly spaced draws
+    edges = np.cumsum(weights, axis=1)
+    edges[:, -1] = 1.0
+    return _row_searchsorted(edges, u)
+
+
+def residual(rng: np.random.Generator, weights: np.ndarray) -> np.ndarray:
+    """(n, N) ancestor indices by residual resampling: floor(N w) copies, the rest systematic on the remainders."""
+    n, count = weights.shape
+    copies = np.floor(count * weights)
+    taken = copies.sum(axis=1, keepdims=True)  # (n, 1) deterministic copies
+    slot = np.arange(count)[None, :]
+    kept = _row_searchsorted(np.cumsum(copies, axis=1) / count, np.broadcast_to(slot / count, (n, count)))  # slot -> its particle
+    remainder = count * weights - copies
+    edges = np.cumsum(remainder, axis=1) / np.maximum(remainder.sum(axis=1, keepdims=True), 1e-300)
+    edges[:, -1] = 1.0
+    u = np.clip((rng.random((n, 1)) + slot - taken) / np.maximum(count - taken, 1), 0.0, 1.0 - 1e-12)
+    return np.where(slot < taken, kept, _row_searchsorted(edges, u))
+
+
+RESAMPLERS = {"systematic": systematic, "residual": residual}

@@ -1,0 +1,119 @@
+"""CNLF: resampling, agreement with the Kalman filter on a linear-Gaussian problem, the ring sample, routing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from condtrack_cli import pipeline
+from condtrack_cli.config import load_config
+from condtrack_cli.evaluate.groundtruth import load_gt_csv
+from condtrack_cli.evaluate.score import score_tracks
+from condtrack_cli.filters import kalman
+from condtrack_cli.filters.cnlf import CNLFSettings, propagate, resample
+from condtrack_cli.filters.resampling import RESAMPLERS, normalise
+from condtrack_cli.frames.readers import FrameSettings, open_frames
+from condtrack_cli.queries import read_queries
+from condtrack_cli.types import METHODS
+
+from conftest import SAMPLES
+
+
+@pytest.mark.parametrize("scheme", sorted(RESAMPLERS))
+def test_resampling_is_unbiased(scheme):
+    rng = np.random.default_rng(0)
+    weights = rng.random((3, 50)) ** 4
+    weights /= weights.sum(axis=1, keepdims=True)
+    counts = np.zeros_like(weights)
+    draws = 4000
+    for _ in range(draws):
+        picks = RESAMPLERS[scheme](rng, weights)
+        assert picks.shape == weights.shape and picks.min() >= 0 and picks.max() < 50
+        counts += (picks[..., None] == np.arange(50)).sum(axis=1)
+    # E[copies of i] = N w_i; over 4000 draws the mean copy count is within 0.02 of it
+    np.testing.assert_allclose(counts / draws, 50 * weights, atol=0.02)
+
+
+def test_residual_resampling_keeps_the_whole_copies():
+    weights = np.array([[0.5, 0.3, 0.15, 0.05]])
+    picks = RESAMPLERS["residual"](np.random.default_rng(1), weights)
+    counts = np.bincount(picks[0], minlength=4)
+    assert counts[0] >= 2 and counts[1] >= 1  # floor(4 w) copies always kept
+
+
+def test_particle_filter_agrees_with_kalman_on_a_linear_gaussian_problem():
+    """x_k = x_{k-1} + u + w, z_k = x_k + v: with 10 000 particles the CNLF's mean and covariance are the
+    Kalman filter's to 0.03 px and 6 % (Monte Carlo error ~ 1/sqrt(N_eff))."""
+    rng = np.random.default_rng(42)
+    n_particles, steps = 10000, 12
+    u = np.array([1.5, -0.7])
+    Q = np.array([[0.8, 0.2], [0.2, 0.5]])
+    R = np.array([[0.6, -0.1], [-0.1, 0.9]])
+    truth = np.array([10.0, 20.0])
+    x_kf, s_kf = truth[None].copy(), 0.25 * np.eye(2)[None]
+    particles = truth + rng.multivariate_normal([0, 0], 0.25 * np.eye(2), n_particles)[None]
+    log_w = normalise(np.zeros((1, n_particles)))
+    settings = CNLFSettings(particles=n_particles)
+    for k in range(steps):
+        truth = truth + u + rng.multivariate_normal([0, 0], Q)
+        z = (truth + rng.multivariate_normal([0, 0], R))[None]
+        valid = np.array([k % 4 != 3])  # every fourth frame: no measurement (infinite R)
+        x_kf, s_kf = kalman.predict(x_kf, s_kf, np.eye(2)[None], u[None], Q[None])
+        x_kf, s_kf = kalman.update(x_kf, s_kf, z, R[None], valid)
+        mu = particles + u
+        particles, log_w = propagate(rng, log_w, mu, np.broadcast_to(Q, mu.shape + (2,)), z, R[None], valid)
+        picks = resample(rng, log_w, settings)
+        particles = np.take_along_axis(particles, picks[..., None], axis=1)
+    w = np.exp(log_w[0])[:, None]
+    mean = (w * particles[0]).sum(axis=0)
+    cov = np.einsum("n,ni,nj->ij", w[:, 0], particles[0] - mean, particles[0] - mean)
+    np.testing.assert_allclose(mean, x_kf[0], atol=0.03)
+    np.testing.assert_allclose(cov, s_kf[0], rtol=0.06, atol=0.01)
+
+
+@pytest.fixture(scope="module")
+def ring_runs():
+    folder = SAMPLES / "ring"
+    source = open_frames(FrameSettings(), folder)
+    queries = read_queries(folder / "queries.csv", source.info)
+    truth = load_gt_csv(folder / "tracks.csv")
+    labels = np.loadtxt(folder / "labels.csv", delimiter=",", skiprows=1, dtype=int)
+    on_disk = np.isin(queries.point_id, labels[labels[:, 1] == 1, 0])
+    runs = {}
+    for method in ("clf", "cnlf", "auto"):
+        tracks = pipeline.run(source, source.info, load_config(None, method=method), queries, seed=3)
+        runs[method] = (tracks, *score_tracks(tracks, truth))
+    return runs, on_disk
+
+
+def _within(data, on_disk, px):
+    error = np.linalg.norm(data.pred_xy - data.gt_xy, axis=-1)
+    scored = data.gt_visible & (np.arange(error.shape[1]) > data.query_frame[:, None])
+    return (error[on_disk][scored[on_disk]] < px).mean()
+
+
+def test_cnlf_keeps_the_disk_points_the_clf_loses(ring_runs):
+    """Within 4 px on the disk's visible frames: measured 0.91 with the CNLF against 0.50 with the CLF."""
+    runs, on_disk = ring_runs
+    cnlf, clf = _within(runs["cnlf"][2], on_disk, 4.0), _within(runs["clf"][2], on_disk, 4.0)
+    assert cnlf >= 0.6 and cnlf >= clf + 0.15
+
+
+def test_auto_routes_the_disk_to_cnlf_and_the_background_to_clf(ring_runs):
+    runs, on_disk = ring_runs
+    tracks = runs["auto"][0]
+    rows = tracks.method >= 0
+    on_cnlf = tracks.method == METHODS.index("cnlf")
+    assert on_cnlf[on_disk].sum() / rows[on_disk].sum() >= 0.8  # measured 0.93
+    assert on_cnlf[~on_disk].sum() / rows[~on_disk].sum() <= 0.05  # measured 0.00
+    assert runs["auto"][1]["delta_avg"] > runs["clf"][1]["delta_avg"]
+
+
+def test_cnlf_is_deterministic_per_seed(ring_runs):
+    runs, _ = ring_runs
+    folder = SAMPLES / "ring"
+    source = open_frames(FrameSettings(), folder)
+    queries = read_queries(folder / "queries.csv", source.info)
+    again = pipeline.run(source, source.info, load_config(None, method="cnlf"), queries, seed=3)
+    assert again.xy.tobytes() == runs["cnlf"][0].xy.tobytes()
+    assert again.cov.tobytes() == runs["cnlf"][0].cov.tobytes()
