@@ -63,3 +63,14 @@ def fresh_condtrack_logger():
         logger.removeHandler(handler)
     logger.setLevel(logging.NOTSET)
     logger.propagate = True
+
+
+def sample_inputs(name: str):
+    """(frame source, queries, ground truth) of a shipped sample sequence."""
+    from condtrack_cli.evaluate.groundtruth import load_gt_csv
+    from condtrack_cli.frames.readers import FrameSettings, open_frames
+    from condtrack_cli.queries import read_queries
+
+    folder = SAMPLES / name
+    source = open_frames(FrameSettings(), folder)
+    return source, read_queries(folder / "queries.csv", source.info), load_gt_csv(folder / "tracks.csv")

@@ -12,20 +12,14 @@ import pytest
 
 from condtrack_cli import pipeline
 from condtrack_cli.config import load_config
-from condtrack_cli.evaluate.groundtruth import load_gt_csv
 from condtrack_cli.evaluate.score import score_tracks
-from condtrack_cli.frames.readers import FrameSettings, open_frames
-from condtrack_cli.queries import read_queries
 
-from conftest import SAMPLES
+from conftest import sample_inputs
 
 
 @pytest.fixture(scope="module")
 def occlusion_runs():
-    folder = SAMPLES / "occlusion"
-    source = open_frames(FrameSettings(), folder)
-    queries = read_queries(folder / "queries.csv", source.info)
-    truth = load_gt_csv(folder / "tracks.csv")
+    source, queries, truth = sample_inputs("occlusion")
     return {
         method: score_tracks(pipeline.run(source, source.info, load_config(None, method=method), queries), truth)
         for method in ("stk", "clf")

@@ -7,16 +7,13 @@ import pytest
 
 from condtrack_cli import pipeline
 from condtrack_cli.config import load_config
-from condtrack_cli.evaluate.groundtruth import load_gt_csv
 from condtrack_cli.evaluate.score import score_tracks
 from condtrack_cli.filters import kalman
 from condtrack_cli.filters.cnlf import CNLFSettings, propagate, resample
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise
-from condtrack_cli.frames.readers import FrameSettings, open_frames
-from condtrack_cli.queries import read_queries
 from condtrack_cli.types import METHODS
 
-from conftest import SAMPLES
+from conftest import SAMPLES, sample_inputs
 
 
 @pytest.mark.parametrize("scheme", sorted(RESAMPLERS))
@@ -73,11 +70,8 @@ def test_particle_filter_agrees_with_kalman_on_a_linear_gaussian_problem():
 
 @pytest.fixture(scope="module")
 def ring_runs():
-    folder = SAMPLES / "ring"
-    source = open_frames(FrameSettings(), folder)
-    queries = read_queries(folder / "queries.csv", source.info)
-    truth = load_gt_csv(folder / "tracks.csv")
-    labels = np.loadtxt(folder / "labels.csv", delimiter=",", skiprows=1, dtype=int)
+    source, queries, truth = sample_inputs("ring")
+    labels = np.loadtxt(SAMPLES / "ring" / "labels.csv", delimiter=",", skiprows=1, dtype=int)
     on_disk = np.isin(queries.point_id, labels[labels[:, 1] == 1, 0])
     runs = {}
     for method in ("clf", "cnlf", "auto"):
@@ -111,9 +105,7 @@ def test_auto_routes_the_disk_to_cnlf_and_the_background_to_clf(ring_runs):
 
 def test_cnlf_is_deterministic_per_seed(ring_runs):
     runs, _ = ring_runs
-    folder = SAMPLES / "ring"
-    source = open_frames(FrameSettings(), folder)
-    queries = read_queries(folder / "queries.csv", source.info)
+    source, queries, _ = sample_inputs("ring")
     again = pipeline.run(source, source.info, load_config(None, method="cnlf"), queries, seed=3)
     assert again.xy.tobytes() == runs["cnlf"][0].xy.tobytes()
     assert again.cov.tobytes() == runs["cnlf"][0].cov.tobytes()
