@@ -43,6 +43,8 @@ class OutputSettings(StageSettings):
 
     hdf5_compression: int = Field(4, ge=0, le=9, description="gzip level of HDF5 datasets (0 = none)")
     store_measurements: bool = Field(True, description="write /measurements/z and /measurements/R to HDF5")
+    store_particles: bool = Field(False, description="write the CNLF's particles to HDF5 (/particles/xy; large)")
+    store_segmentation: bool = Field(False, description="write the motion segmentation maps of auto to HDF5 (/segmentation)")
 
 
 #: Stage kinds whose section is ``name:`` plus that implementation's parameters.
@@ -52,7 +54,7 @@ NAMED_SECTIONS = ("frames", "detect", "motion", "measure")
 DEFAULT_NAMES = {"frames": "auto", "detect": "shi_tomasi", "motion": "robust", "measure": "ssd"}
 
 #: Method used when neither the config nor ``-m`` names one.
-DEFAULT_METHOD = "clf"
+DEFAULT_METHOD = "auto"
 
 SECTION_DOCS = {
     "frames": "how frames are read (folder of images or video)",

@@ -53,7 +53,10 @@ def run(
 
 
 def merge_backward(forward: Tracks, backward: Tracks) -> Tracks:
-    """Tracks with ``backward``'s (time-reversed, frames last..0) rows before each query frame."""
+    """Tracks with ``backward``'s (time-reversed, frames last..0) rows before each query frame.
+
+    The optional datasets (``extras``: particles, segmentation) are the forward pass's.
+    """
     last = backward.xy.shape[1] - 1
     before = np.arange(forward.xy.shape[1])[None, :] < forward.queries.frame[:, None]  # (P, F)
 
@@ -66,7 +69,7 @@ def merge_backward(forward: Tracks, backward: Tracks) -> Tracks:
     return Tracks(
         queries=forward.queries, xy=combine(forward.xy, backward.xy), cov=combine(forward.cov, backward.cov),
         visible=combine(forward.visible, backward.visible), method=combine(forward.method, backward.method),
-        z=combine(forward.z, backward.z), R=combine(forward.R, backward.R),
+        z=combine(forward.z, backward.z), R=combine(forward.R, backward.R), extras=forward.extras,
     )
 
 

@@ -101,6 +101,11 @@ class Tracks:
     visible: (P, F) bool.
     method: (P, F) int8 index into ``METHODS``, -1 where no state.
     z, R: raw measurements, (P, F, 2) and (P, F, 2, 2), as in ``FrameEstimate``.
+    extras: optional HDF5 datasets by path, written when configured:
+       ``particles/xy`` (P, F, N, 2) float32, the CNLF's particles (NaN where
+       the point is not on the CNLF); ``segmentation`` (F - 1, H, W) uint8,
+       255 x the robust weight of the global fit from frame k to k + 1 on frame
+       k's grid (the pixels that follow the dominant motion).
     """
 
     queries: Queries
@@ -110,6 +115,7 @@ class Tracks:
     method: np.ndarray
     z: np.ndarray
     R: np.ndarray
+    extras: dict = field(default_factory=dict)
 
     @property
     def has_state(self) -> np.ndarray:

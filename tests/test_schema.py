@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import re
+import subprocess
+import sys
 
 import h5py
 import numpy as np
@@ -132,7 +134,7 @@ def test_hdf5_datasets_match_the_doc(tmp_path, store_measurements, compression):
     write_small(path, OutputSettings(hdf5_compression=compression, store_measurements=store_measurements))
     documented = {
         row["dataset"]: row for row in doc_table("### Datasets")
-        if row["written"] == "always" or store_measurements
+        if row["written"] == "always" or (row["written"] == "store_measurements" and store_measurements)
     }
     layout = h5_layout(path)
     assert set(layout) == set(documented)
@@ -197,3 +199,28 @@ def test_an_hdf5_whose_shapes_depart_from_the_schema_is_refused(tmp_path):
         f["tracks/visible"] = np.ones((P, F + 1), bool)
     with pytest.raises(CondtrackError, match=r"damaged or incomplete .*visible has shape \(3, 5\), expected \(3, 4\)"):
         read_tracks(path)
+
+
+def test_optional_datasets_of_auto_match_the_doc(tmp_path):
+    """``auto`` with particles and segmentation stored writes exactly the documented optional datasets."""
+    from conftest import SAMPLES
+
+    folder, out = SAMPLES / "ring", tmp_path / "auto.h5"
+    result = subprocess.run(
+        [sys.executable, "-m", "condtrack_cli", "track", str(folder), "-p", str(folder / "queries.csv"), "-m", "auto",
+         "--set", "output.store_particles=true", "--set", "output.store_segmentation=true", "-o", str(out), "-q"],
+        capture_output=True, text=True, timeout=300,
+    )
+    assert result.returncode == 0, result.stderr
+    layout = h5_layout(out)
+    with h5py.File(out) as f:
+        p, n_frames = f["tracks/xy"].shape[:2]
+        height, width = int(f.attrs["height"]), int(f.attrs["width"])
+    sizes = {"P": p, "F": n_frames, "F-1": n_frames - 1, "N": 100, "H": height, "W": width}
+    for row in doc_table("### Datasets"):
+        if row["written"] in ("store_particles", "store_segmentation"):
+            shape, dtype, attributes = layout[row["dataset"]]
+            parts = [part.strip() for part in row["shape"].strip("()").split(",")]
+            assert shape == tuple(sizes[part] if part in sizes else int(part) for part in parts), row["dataset"]
+            assert doc_dtype_matches(row["dtype"], dtype), row["dataset"]
+            assert set(attributes) == {a.strip() for a in row["attributes"].split(",") if a.strip()}

@@ -64,6 +64,8 @@ class AutoTracker(Tracker):
         self.support = np.full(p, np.nan)
         self.on_cnlf = np.zeros(p, bool)
         self.trackable = np.ones(p, bool)
+        self.store_segmentation = config.output.store_segmentation
+        self.segmentation: list[np.ndarray] = []  #: per frame pair, (H, W) uint8 255 x robust weight
 
     def step(self, frame: Frame, prev: Frame | None) -> FrameEstimate:
         self.cnlf.begin_frame()
@@ -80,6 +82,8 @@ class AutoTracker(Tracker):
     def _route(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
         """Update the supports of points ``index`` and hand over those that change filter."""
         fit = self.clf.motion.fit(prev, frame)
+        if self.store_segmentation:
+            self.segmentation.append(np.rint(fit.weights * 255).astype(np.uint8))
         w = neighbourhood_support(fit, self.xy[index], self.window)
         a = 1.0 / self.settings.integration_frames
         s = self.support[index]
@@ -115,7 +119,10 @@ class AutoTracker(Tracker):
     def finish(self, history: list[FrameEstimate]) -> Tracks:
         """Tracks whose CNLF segments still open at the end carry the particle path means."""
         tracks = super().finish(history)
-        return dataclasses.replace(tracks, xy=self.cnlf.path_means(tracks.xy))
+        extras = self.cnlf.extras()
+        if self.store_segmentation and self.segmentation:
+            extras["segmentation"] = np.stack(self.segmentation)
+        return dataclasses.replace(tracks, xy=self.cnlf.path_means(tracks.xy), extras=extras)
 
 
 @register("filter", "auto", AutoSettings, "each point to the CLF or the CNLF by motion segmentation (paper §5.3)")

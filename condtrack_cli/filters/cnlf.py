@@ -138,7 +138,8 @@ class CNLFTracker(Tracker):
         self.particles = np.full((p, n, 2), np.nan)
         self.log_w = np.full((p, n), -np.log(n))
         self.lineage_start = np.full(p, -1)  #: pass frame at which each point's particles were (re)drawn
-        self.particle_history: list[np.ndarray] = []  #: per frame, (P, N, 2) particles
+        self.particle_history: list[np.ndarray] = []  #: per frame, (P, N, 2) particles, NaN off the CNLF
+        self.store_particles = config.output.store_particles
         self.ancestor_history: list[np.ndarray] = []  #: per frame, (P, N) index of each particle's parent
 
     def step(self, frame: Frame, prev: Frame | None) -> FrameEstimate:
@@ -153,7 +154,7 @@ class CNLFTracker(Tracker):
 
     def end_frame(self) -> None:
         """After a frame: keep its particles and their parents for the path estimate."""
-        self.particle_history.append(self.particles.copy())
+        self.particle_history.append(np.where((self.lineage_start >= 0)[:, None, None], self.particles, np.nan))
         self.ancestor_history.append(self.ancestors)
 
     def adopt(self, index: np.ndarray, frame_index: int, xy: np.ndarray, cov: np.ndarray) -> None:
@@ -203,7 +204,13 @@ class CNLFTracker(Tracker):
     def finish(self, history: list[FrameEstimate]) -> Tracks:
         """The trajectory estimate: the weighted mean of the particle paths with the final weights."""
         tracks = super().finish(history)
-        return dataclasses.replace(tracks, xy=self.path_means(tracks.xy))
+        return dataclasses.replace(tracks, xy=self.path_means(tracks.xy), extras=self.extras())
+
+    def extras(self) -> dict:
+        """``particles/xy`` (P, F, N, 2) float32 when ``output.store_particles`` is set."""
+        if not self.store_particles:
+            return {}
+        return {"particles/xy": np.stack(self.particle_history, axis=1).astype(np.float32)}
 
     def path_means(self, xy: np.ndarray) -> np.ndarray:
         """(P, F, 2) ``xy`` with the weighted path means on the frames of each point's current particle lineage."""

@@ -12,6 +12,13 @@ from typing import Iterator
 from condtrack_cli.errors import CondtrackError
 
 
+def _umask() -> int:
+    """The process's file-creation mask (read by setting it and putting it back)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path in ``path``'s folder; rename it to ``path`` on success, delete it otherwise."""
@@ -27,6 +34,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     temporary = Path(temporary)
     try:
         yield temporary
+        os.chmod(temporary, 0o666 & ~_umask())  # mkstemp makes 0600; an output gets the usual permissions
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)

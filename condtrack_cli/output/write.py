@@ -94,11 +94,19 @@ def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, A
         _dataset(group, "method_code", tracks.method, settings, names=",".join(METHODS),
                  meaning="per frame: index into names; -1 where no state")
         _dataset(f, "queries", np.column_stack([q.frame, q.xy]).astype(np.float64), settings, columns="frame,x,y")
+        for name, data in tracks.extras.items():
+            _dataset(f, name, data, settings, **EXTRA_ATTRIBUTES[name])
         if settings.store_measurements:
             m = f.create_group("measurements")
             _dataset(m, "z", tracks.z, settings, units="px", missing="NaN where no measurement was made")
             _dataset(m, "R", tracks.R, settings, units="px^2", meaning="inf diagonal: no information (uniform surface)")
 
+
+#: Attributes of the optional datasets (``Tracks.extras``).
+EXTRA_ATTRIBUTES = {
+    "particles/xy": {"units": "px", "missing": "NaN where the point is not on the CNLF"},
+    "segmentation": {"meaning": "255 x robust weight of the global fit from frame k to k+1, on frame k's grid"},
+}
 
 #: Output file extension -> registered writer.
 WRITERS = {".csv": "csv", ".h5": "hdf5", ".hdf5": "hdf5"}
