@@ -13,11 +13,14 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
+SAMPLE := sample_sequences/occlusion
+
 demo: $(STAMP)
 	rm -rf demo-out && mkdir -p demo-out
-	$(BIN)/condtrack track sample_sequences/occlusion -o demo-out/occlusion.h5
-	$(BIN)/condtrack track sample_sequences/occlusion -o demo-out/occlusion.csv -q
-	@echo "demo outputs: $(CURDIR)/demo-out/occlusion.h5 $(CURDIR)/demo-out/occlusion.csv"
+	$(BIN)/condtrack track $(SAMPLE) -p $(SAMPLE)/queries.csv -o demo-out/occlusion.h5 --overlay demo-out/occlusion.mp4
+	$(BIN)/condtrack track $(SAMPLE) -p $(SAMPLE)/queries.csv -o demo-out/occlusion.csv -q
+	$(BIN)/condtrack eval demo-out/occlusion.h5 $(SAMPLE)/tracks.csv
+	@echo "demo outputs: $(CURDIR)/demo-out/occlusion.h5 $(CURDIR)/demo-out/occlusion.csv $(CURDIR)/demo-out/occlusion.mp4"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
