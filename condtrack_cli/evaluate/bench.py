@@ -21,7 +21,7 @@ import os
 import platform
 import subprocess
 import sys
-import tempfile
+import shutil
 import time
 from pathlib import Path
 
@@ -181,11 +181,13 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results.md")
     parser.add_argument("--max-points", type=int, default=1000, help="most query points per shared sequence")
+    parser.add_argument("--work", type=Path, default=REPO / "bench" / "out",
+                        help="folder for the queries and track files (emptied first; kept for `condtrack eval`)")
     args = parser.parse_args()
-    with tempfile.TemporaryDirectory(prefix="condtrack-bench-") as temporary:
-        work = Path(temporary)
-        accuracy = accuracy_table(args.max_points, work)
-        speed = speed_table(work)
+    shutil.rmtree(args.work, ignore_errors=True)
+    args.work.mkdir(parents=True)
+    accuracy = accuracy_table(args.max_points, args.work)
+    speed = speed_table(args.work)
     header = [
         "# condtrack benchmark",
         "",
@@ -198,6 +200,8 @@ def main() -> None:
         f"with >= 3 observations, at most {args.max_points} per sequence)",
         "",
         "OA and AJ are n/a where the ground truth has no occluded rows. cov95 is n/a for methods without covariance.",
+        "Track files stay in bench/out/ (`<sequence>.<method>.h5`, queries beside them): "
+        "`condtrack eval bench/out/<file>.h5 <ground truth>` gives the row's numbers.",
         "",
     ]
     text = "\n".join(header + accuracy + ["", "## Speed", ""] + speed) + "\n"
