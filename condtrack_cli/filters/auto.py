@@ -6,9 +6,12 @@ Rule, per point and per frame:
    no reliable local motion either; it stays with the CLF.
 2. Motion-based segmentation (Irani, Rousso & Peleg 1994): the robust weights
    of the global fit mark the pixels that follow the dominant motion. A point's
-   support s is the mean weight over the ``motion.local_window`` square around
-   it, integrated over frames as s <- (1 - a) s + a w_k with a = 1 /
-   ``integration_frames`` (s = w on the first frame).
+   evidence w_k is the mean weight over the ``motion.local_window`` square
+   around it, or 0 when its last measurement fell outside the gate that the
+   dominant motion alone would give (``_check_dominant``: the point itself
+   did not move with the dominant motion). Its support integrates the evidence
+   over frames: s <- (1 - a) s + a w_k with a = 1 / ``integration_frames``
+   (s = w on the first frame).
 3. A point starts with the CLF; it moves to the CNLF when s falls below
    ``support_low`` and back to the CLF when s rises above ``support_high`` (a
    hysteresis, so that a point on the border does not flip every frame), and
@@ -35,7 +38,8 @@ from condtrack_cli.filters.base import Tracker
 from condtrack_cli.filters.clf import CLFTracker, build_stage
 from condtrack_cli.filters.cnlf import CNLFTracker
 from condtrack_cli.filters.reference import ReferenceMatcher
-from condtrack_cli.motion.robust import neighbourhood_support
+from condtrack_cli.filters import kalman
+from condtrack_cli.motion.robust import displacement, neighbourhood_support
 from condtrack_cli.registry import register
 from condtrack_cli.types import METHODS, Frame, FrameEstimate, Queries, SequenceInfo, Tracks
 
@@ -64,6 +68,9 @@ class AutoTracker(Tracker):
         self.support = np.full(p, np.nan)
         self.on_cnlf = np.zeros(p, bool)
         self.trackable = np.ones(p, bool)
+        self.follows = np.ones(p)  #: 1 while the point's measurements agree with the dominant motion, else 0
+        self.q_floor = config.stage("motion").settings.q_floor
+        self.gamma = self.clf.reference.measure.settings.gamma
         self.store_segmentation = config.output.store_segmentation
         self.segmentation: list[np.ndarray] = []  #: per frame pair, (H, W) uint8 255 x robust weight
 
@@ -84,7 +91,7 @@ class AutoTracker(Tracker):
         fit = self.clf.motion.fit(prev, frame)
         if self.store_segmentation:
             self.segmentation.append(np.rint(fit.weights * 255).astype(np.uint8))
-        w = neighbourhood_support(fit, self.xy[index], self.window)
+        w = np.minimum(neighbourhood_support(fit, self.xy[index], self.window), self.follows[index])
         a = 1.0 / self.settings.integration_frames
         s = self.support[index]
         s = np.where(np.isnan(s), w, (1 - a) * s + a * w)
@@ -104,11 +111,28 @@ class AutoTracker(Tracker):
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
         self._route(index, prev, frame)
+        x_prev = self.xy[index].copy()
         for tracker, members in ((self.clf, index[~self.on_cnlf[index]]), (self.cnlf, index[self.on_cnlf[index]])):
             tracker.z[members], tracker.R[members] = np.nan, np.nan
             if members.size:
                 tracker._advance(members, prev, frame)
             self._collect(members, tracker)
+        self._check_dominant(index, x_prev, self.clf.motion.fit(prev, frame))
+
+    def _check_dominant(self, index: np.ndarray, x_prev: np.ndarray, fit) -> None:
+        """Did each measured point move as the dominant motion says? Sets ``follows`` to 1 or 0.
+
+        A point follows when its measurement z_k falls in the gate that the
+        dominant motion alone would give: nu = z_k - (x + U(x)), nu^T (q_floor I +
+        R_k)^-1 nu <= gamma. Points without a measurement keep their value.
+        """
+        seen = self.visible[index]
+        if not seen.any():
+            return
+        x = x_prev[seen]
+        nu = self.z[index[seen]] - (x + displacement(fit, x))
+        spread = self.q_floor * np.eye(2) + self.R[index[seen]]
+        self.follows[index[seen]] = (kalman.mahalanobis2(nu, spread) <= self.gamma).astype(float)
 
     def _collect(self, index: np.ndarray, tracker: Tracker) -> None:
         """Copy the state of points ``index`` from ``tracker`` into the router's report."""
