@@ -128,13 +128,3 @@ class Tracks:
         names = np.array(METHODS + ("",), dtype=object)
         best = np.where(counts.any(axis=1), counts.argmax(axis=1), len(METHODS))
         return list(names[best])
-
-
-def empty_estimate(n_points: int) -> FrameEstimate:
-    """A FrameEstimate with no state for any of ``n_points`` points."""
-    nan2 = np.full((n_points, 2), np.nan)
-    nan22 = np.full((n_points, 2, 2), np.nan)
-    return FrameEstimate(
-        xy=nan2, cov=nan22, visible=np.zeros(n_points, bool), z=nan2.copy(), R=nan22.copy(),
-        method=np.full(n_points, -1, np.int8),
-    )
