@@ -9,14 +9,18 @@ Rule, per point and per frame:
    evidence w_k is the mean weight over the ``motion.local_window`` square
    around it, or 0 when its last measurement fell outside the gate that the
    dominant motion alone would give (``_check_dominant``: the point itself
-   did not move with the dominant motion). Its support integrates the evidence
+   did not move with the dominant motion), or while it has not been found
+   once since its query frame (its dynamics were wrong from the start; this
+   also catches a point queried as it emerges from behind an occluder, whose
+   backward pass loses it at once). Its support integrates the evidence
    over frames: s <- (1 - a) s + a w_k with a = 1 / ``integration_frames``
    (s = w on the first frame).
 3. A point starts with the CLF; it moves to the CNLF when s falls below
    ``support_low`` and back to the CLF when s rises above ``support_high`` (a
    hysteresis, so that a point on the border does not flip every frame), and
-   only while it is visible: an occluded point's neighbourhood is the
-   occluder's, whose motion says nothing of the point's. The thresholds
+   only while it is visible or not yet found since its query: an occluded
+   point's neighbourhood is the occluder's, whose motion says nothing of the
+   point's. The thresholds
    follow the dominant model's one-step prediction error measured on the
    real sequences of ../shared/data: median <= 1 px where the support is
    above 0.8, 2-5 px between 0.4 and 0.8, 10 px below 0.4. The
@@ -69,6 +73,7 @@ class AutoTracker(Tracker):
         self.on_cnlf = np.zeros(p, bool)
         self.trackable = np.ones(p, bool)
         self.follows = np.ones(p)  #: 1 while the point's measurements agree with the dominant motion, else 0
+        self.measured = np.zeros(p, bool)  #: the point was found again at least once after its query frame
         self.q_floor = config.stage("motion").settings.q_floor
         self.gamma = self.clf.reference.measure.settings.gamma
         self.store_segmentation = config.output.store_segmentation
@@ -96,7 +101,7 @@ class AutoTracker(Tracker):
         s = self.support[index]
         s = np.where(np.isnan(s), w, (1 - a) * s + a * w)
         self.support[index] = s
-        seen = self.visible[index]  # an occluded point's neighbourhood is the occluder's: no decision then
+        seen = self.visible[index] | ~self.measured[index]  # an occluded point's neighbourhood is the occluder's
         to_cnlf = index[seen & ~self.on_cnlf[index] & self.trackable[index] & (s < self.settings.support_low)]
         to_clf = index[seen & self.on_cnlf[index] & (s > self.settings.support_high)]
         if to_cnlf.size:
@@ -126,7 +131,10 @@ class AutoTracker(Tracker):
         dominant motion alone would give: nu = z_k - (x + U(x)), nu^T (q_floor I +
         R_k)^-1 nu <= gamma. Points without a measurement keep their value.
         """
+        never_found = ~self.visible[index] & ~self.measured[index]  # not found once since its query frame
+        self.follows[index[never_found]] = 0.0
         seen = self.visible[index]
+        self.measured[index[seen]] = True
         if not seen.any():
             return
         x = x_prev[seen]
