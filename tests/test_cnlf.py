@@ -98,7 +98,7 @@ def test_auto_routes_the_disk_to_cnlf_and_the_background_to_clf(ring_runs):
     tracks = runs["auto"][0]
     rows = tracks.method >= 0
     on_cnlf = tracks.method == METHODS.index("cnlf")
-    assert on_cnlf[on_disk].sum() / rows[on_disk].sum() >= 0.8  # measured 0.93
+    assert on_cnlf[on_disk].sum() / rows[on_disk].sum() >= 0.8  # measured 0.967
     # measured 0.063: background points queried as they emerge from behind the disk, lost at once backward
     assert on_cnlf[~on_disk].sum() / rows[~on_disk].sum() <= 0.10
     assert runs["auto"][1]["delta_avg"] > runs["clf"][1]["delta_avg"]
