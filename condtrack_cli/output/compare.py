@@ -98,7 +98,7 @@ class _Found:
     field: str
     point_id: np.ndarray
     frame: np.ndarray
-    score: np.ndarray  # |a - b| / tolerance; inf for a kind or presence mismatch
+    score: np.ndarray  # |a - b| / tolerance; inf for a kind or presence mismatch; 1 for a visibility or method flip
     a: np.ndarray
     b: np.ndarray
 
@@ -195,12 +195,12 @@ def compare_tracks(
     if "visible" in fields:
         va, vb = _padded(a.visible, ia, n_frames, False), _padded(b.visible, ib, n_frames, False)
         flips = both & (va != vb)
-        add("visible", flips, np.where(flips, np.inf, 0.0), va.astype(int), vb.astype(int))
+        add("visible", flips, flips.astype(float), va.astype(int), vb.astype(int))
     if "method" in fields:
         va, vb = _padded(a.method, ia, n_frames, -1), _padded(b.method, ib, n_frames, -1)
         differs = both & (va != vb)
         names = np.array(METHODS + ("none",), dtype=object)  # code -1 -> "none"
-        add("method", differs, np.where(differs, np.inf, 0.0), names[va], names[vb])
+        add("method", differs, differs.astype(float), names[va], names[vb])
     for prefix, array_a, array_b, atol, rtol, entries in (
         ("", a.xy, b.xy, atol_px, 0.0, _COORDINATES),
         ("cov_", a.cov, b.cov, COV_ATOL, rtol_cov, _ENTRIES),
