@@ -7,6 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from scipy import ndimage
 
 REPO = Path(__file__).resolve().parents[1]
 ASSETS = REPO / "condtrack_cli" / "frames" / "assets"
@@ -74,3 +75,22 @@ def sample_inputs(name: str):
     folder = SAMPLES / name
     source = open_frames(FrameSettings(), folder)
     return source, read_queries(folder / "queries.csv", source.info), load_gt_csv(folder / "tracks.csv")
+
+
+def render_pair(image: np.ndarray, field, side: int, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """(prev, cur) float32 ``side`` x ``side`` crops from the centre of ``image`` with prev(x) = cur(x + field(x)).
+
+    Both frames are sampled by cubic B-spline (not an estimator's bilinear
+    interpolation) and get Gaussian noise of std ``noise`` grey levels, rounded
+    and clipped to 8-bit levels, as a camera would give them. ``field`` maps
+    (N, 2) crop positions to (N, 2) displacements (px).
+    """
+    offset = (np.array(image.shape[::-1]) - side) / 2  # (x, y) of the crop's corner
+    ys, xs = np.mgrid[0:side, 0:side]
+    pixels = np.column_stack((xs.ravel(), ys.ravel())).astype(np.float64) + offset
+    rng = np.random.default_rng(seed)
+    frames = []
+    for positions in (pixels + field(pixels - offset), pixels):
+        sampled = ndimage.map_coordinates(image, positions[:, ::-1].T, order=3).reshape(side, side)
+        frames.append(np.clip(np.round(sampled + rng.normal(0, noise, sampled.shape)), 0, 255).astype(np.float32))
+    return frames[0], frames[1]

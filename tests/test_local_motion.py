@@ -22,21 +22,18 @@ Measured when written (seed 0, 320 x 240), each against its tolerance:
 
 from __future__ import annotations
 
-from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
-from scipy import ndimage
 from scipy.optimize import least_squares
 
-import condtrack_cli
 from condtrack_cli.frames.synthetic import make_scene
 from condtrack_cli.motion.local import LocalField, LocalMotion, exact_local_motion
 from condtrack_cli.motion.robust import RobustMotionSettings
 from condtrack_cli.types import Frame
 
-ASSETS = Path(condtrack_cli.__file__).parent / "frames" / "assets"
+from conftest import load_asset, render_pair
+
 SIDE = 320  # global-warp frames are SIDE x SIDE crops, from the centre of the photographs
 CENTRE = (SIDE - 1) / 2
 MARGIN = 24  # px of frame border left out of the scored positions
@@ -44,9 +41,8 @@ HALF_WINDOW = 16  # px: a position this far from the disk's outline has its whol
 
 
 def load(name: str) -> np.ndarray:
-    image = cv2.imread(str(ASSETS / name), cv2.IMREAD_GRAYSCALE)
-    assert image is not None, name
-    return image.astype(np.float64)
+    """(H, W) float64 grey photograph from the package assets."""
+    return load_asset(name).astype(np.float64)
 
 
 def translation_field(xy: np.ndarray) -> np.ndarray:
@@ -69,15 +65,7 @@ def grid(step: int = 4, margin: int = MARGIN, side: int = SIDE) -> np.ndarray:
 
 def warped_pair(field, photo: str, noise: float = 1.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(prev, cur) float32 SIDE x SIDE frames, prev(x) = cur(x + field(x)), cubic B-spline, noise std ``noise``."""
-    image = load(photo)
-    offset = (np.array(image.shape[::-1]) - SIDE) / 2  # (x, y) of the crop's corner
-    pixels = grid(step=1, margin=0) + offset
-    rng = np.random.default_rng(seed)
-    frames = []
-    for positions in (pixels + field(pixels - offset), pixels):
-        sampled = ndimage.map_coordinates(image, positions[:, ::-1].T, order=3).reshape(SIDE, SIDE)
-        frames.append(np.clip(np.round(sampled + rng.normal(0, noise, sampled.shape)), 0, 255).astype(np.float32))
-    return frames[0], frames[1]
+    return render_pair(load(photo), field, SIDE, noise, seed)
 
 
 def field_of(prev: np.ndarray, cur: np.ndarray, settings: RobustMotionSettings) -> LocalField:

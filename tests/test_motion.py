@@ -9,14 +9,11 @@ photograph: no empty pixel enters any frame. Frames are rounded to 8 bits.
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from scipy import ndimage
 
-import condtrack_cli
 from condtrack_cli import registry
 from condtrack_cli.motion.robust import (
     GlobalMotion,
@@ -31,7 +28,8 @@ from condtrack_cli.motion.robust import (
 from condtrack_cli.motion._blocks import block_displacements, block_hypotheses
 from condtrack_cli.types import Frame
 
-ASSETS = Path(condtrack_cli.__file__).parent / "frames" / "assets"
+from conftest import load_asset, render_pair
+
 SIDE = 400  # frames are SIDE x SIDE crops
 OFFSET = 56  # of the 512 x 512 photographs, centred
 CENTRE = (SIDE - 1) / 2
@@ -41,9 +39,8 @@ RMS_TOLERANCE = 0.05  # px, RMS displacement error over the scored pixels
 
 
 def load(name: str) -> np.ndarray:
-    image = cv2.imread(str(ASSETS / name), cv2.IMREAD_GRAYSCALE)
-    assert image is not None, name
-    return image.astype(np.float32)
+    """(H, W) float32 grey photograph from the package assets."""
+    return load_asset(name).astype(np.float32)
 
 
 def affine_field(xy: np.ndarray, angle_deg: float = 1.5, zoom: float = 1.02, shift=(3.2, -2.1)) -> np.ndarray:
@@ -89,14 +86,7 @@ def frame_pair(field, photo: str = "camera.png") -> tuple[np.ndarray, np.ndarray
 def rendered_pair(field, photo: str, noise: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """Like ``frame_pair`` but both frames sampled by cubic B-spline (not the estimator's bilinear
     interpolation) with Gaussian noise of std ``noise`` grey levels, as a camera would give them."""
-    image = load(photo)
-    pixels = grid(step=1, margin=0) + OFFSET
-    rng = np.random.default_rng(seed)
-    frames = []
-    for positions in (pixels + field(pixels - OFFSET), pixels):
-        sampled = ndimage.map_coordinates(image, positions[:, ::-1].T, order=3).reshape(SIDE, SIDE)
-        frames.append(np.clip(np.round(sampled + rng.normal(0, noise, sampled.shape)), 0, 255).astype(np.float32))
-    return frames[0], frames[1]
+    return render_pair(load(photo), field, SIDE, noise, seed)
 
 
 def rms_error(fit: MotionFit, field, xy: np.ndarray) -> float:
