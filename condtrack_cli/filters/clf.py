@@ -15,13 +15,12 @@ Per frame, for all started points at once:
 from __future__ import annotations
 
 import numpy as np
-from pydantic import Field
 
 from condtrack_cli import registry
-from condtrack_cli.config import Config, StageSettings
+from condtrack_cli.config import Config
 from condtrack_cli.filters import kalman
 from condtrack_cli.filters.base import Tracker
-from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMatcher
+from condtrack_cli.filters.reference import InitialStateSettings, MeasuredFilterSettings, ReferenceMatcher
 from condtrack_cli.motion.robust import displacement, jacobian, state_noise
 from condtrack_cli.registry import register
 from condtrack_cli.types import Frame, Queries, SequenceInfo
@@ -44,8 +43,8 @@ class CLFSettings(MeasuredFilterSettings):
     """The CLF's settings: those of every filter that measures a reference patch."""
 
 
-class MDRSettings(StageSettings):
-    initial_std: float = Field(0.5, gt=0, description="std of the position at the query frame (px)")
+class MDRSettings(InitialStateSettings):
+    """MDR's settings: the initial position std only."""
 
 
 class MDRTracker(Tracker):

@@ -20,10 +20,15 @@ from condtrack_cli.filters import kalman
 from condtrack_cli.types import Frame
 
 
-class MeasuredFilterSettings(StageSettings):
-    """Settings shared by the filters that measure a reference patch (CLF, CNLF)."""
+class InitialStateSettings(StageSettings):
+    """Settings of every filter that carries a covariance from the query on (MDR, CLF, CNLF)."""
 
     initial_std: float = Field(0.5, gt=0, description="std of the position at the query frame (px)")
+
+
+class MeasuredFilterSettings(InitialStateSettings):
+    """Settings shared by the filters that measure a reference patch (CLF, CNLF)."""
+
     nominal_r: float = Field(1.0, gt=0, description="variance sizing the search before a point has a finite R_k (px^2)")
     gate_r_min: float = Field(0.1, gt=0, description="least variance of the R sizing the search (px^2)")
     gate_r_max: float = Field(25.0, gt=0, description="largest variance of the R sizing the search (px^2)")
