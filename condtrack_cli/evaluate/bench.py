@@ -11,6 +11,9 @@ Sequences: ``sample_sequences/*`` (queries.csv and tracks.csv shipped) and
 for those, the queries are each track's first observation, over tracks with at
 least 3 observations, at most ``--max-points`` of them (every k-th track, k
 the smallest stride that fits) to bound the run time.
+
+``--support SEQUENCE`` prints instead the dominant model's one-step prediction
+error by neighbourhood support (the measurement behind ``auto``'s thresholds).
 """
 
 from __future__ import annotations
@@ -158,6 +161,44 @@ def speed_table(work: Path, n_points: int = 500, n_frames: int = 60, size: tuple
     return lines
 
 
+#: Bins of the neighbourhood support for ``support_table``.
+SUPPORT_BINS = (0.0, 0.4, 0.6, 0.8, 1.0001)
+
+
+def support_table(folder: Path, window: int = 32) -> list[str]:
+    """Markdown rows: the dominant model's one-step prediction error on a sequence's GT, by support.
+
+    For every GT track seen on frames k-1 and k, the error |x_k - (x_{k-1} +
+    U(x_{k-1}))| of the default global fit, binned by the mean robust weight
+    over the ``window`` square around x_{k-1} (``neighbourhood_support``): the
+    measurement behind ``auto``'s thresholds and the misfit term of Q_k.
+    """
+    from condtrack_cli.frames.readers import FrameSettings, open_frames
+    from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings, displacement, neighbourhood_support
+    from condtrack_cli.types import Frame
+
+    truth = load_gt_csv(folder / "tracks.csv")
+    motion = GlobalMotion(RobustMotionSettings())
+    support, error, prev = [], [], None
+    for index, image in enumerate(open_frames(FrameSettings(), folder)):
+        frame = Frame(index, image)
+        if prev is not None:
+            both = truth.known[:, index - 1] & truth.known[:, index]
+            x, x_next = truth.gt_xy[both, index - 1], truth.gt_xy[both, index]
+            fit = motion.fit(prev, frame)
+            support.append(neighbourhood_support(fit, x, window))
+            error.append(np.linalg.norm(x + displacement(fit, x) - x_next, axis=1))
+        prev = frame
+    support, error = np.concatenate(support), np.concatenate(error)
+    lines = [f"One-step error of the dominant model on {folder.name}, by support:", "",
+             "| support | share | median error (px) |", "|---|---|---|"]
+    for low, high in zip(SUPPORT_BINS[:-1], SUPPORT_BINS[1:]):
+        inside = (support >= low) & (support < high)
+        median = f"{np.median(error[inside]):.2f}" if inside.any() else "n/a"
+        lines.append(f"| [{low:.1f}, {min(high, 1.0):.1f}{']' if high > 1 else ')'} | {inside.mean():.2f} | {median} |")
+    return lines
+
+
 def machine() -> str:
     cpu = platform.processor() or "unknown CPU"
     try:
@@ -183,7 +224,12 @@ def main() -> None:
     parser.add_argument("--max-points", type=int, default=1000, help="most query points per shared sequence")
     parser.add_argument("--work", type=Path, default=REPO / "bench" / "out",
                         help="folder for the queries and track files (emptied first; kept for `condtrack eval`)")
+    parser.add_argument("--support", type=Path, metavar="SEQUENCE",
+                        help="only print the dominant model's one-step error by support on SEQUENCE (with tracks.csv)")
     args = parser.parse_args()
+    if args.support:
+        print("\n".join(support_table(args.support)))
+        return
     shutil.rmtree(args.work, ignore_errors=True)
     args.work.mkdir(parents=True)
     accuracy = accuracy_table(args.max_points, args.work)

@@ -20,10 +20,11 @@ Rule, per point and per frame:
    hysteresis, so that a point on the border does not flip every frame), and
    only while it is visible or not yet found since its query: an occluded
    point's neighbourhood is the occluder's, whose motion says nothing of the
-   point's. The thresholds
-   follow the dominant model's one-step prediction error measured on the
-   real sequences of ../shared/data: median <= 1 px where the support is
-   above 0.8, 2-5 px between 0.4 and 0.8, 10 px below 0.4. The
+   point's. The thresholds follow the dominant model's one-step prediction
+   error on the real sequences of ../shared/data (``python -m
+   condtrack_cli.evaluate.bench --support SEQUENCE``): median 0.45-1.1 px
+   where the support is >= 0.8, 0.9-2.7 px in [0.6, 0.8), 2.3-5.4 px in
+   [0.4, 0.6), about 10 px below 0.4 (kt3dmoseg_seq005_clip01, oxford_dinosaur). The
    state is handed over: particles drawn from N(x, Sigma) one way, the particle
    mean and covariance the other way.
 The ``method`` of each row says which filter produced it.

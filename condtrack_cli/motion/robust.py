@@ -224,8 +224,9 @@ def state_noise(
     for what any parametric model leaves out; and a model-misfit term read off
     the robust fit itself: where the neighbourhood of x was rejected as outliers
     the dominant motion says little about x, so the point may move by up to a
-    few pixels more (measured on the KITTI clip of ../shared/data: one-step
-    prediction error median 9 px where w < 0.3 against 0.4-1.2 px where w > 0.9).
+    few pixels more (``python -m condtrack_cli.evaluate.bench --support SEQUENCE``
+    on the real sequences of ../shared/data: one-step prediction error median
+    about 10 px where the support is below 0.4, 0.45-1.1 px where it is >= 0.8).
     The weighted-least-squares Sigma_theta treats pixels as independent, so it is
     tiny on textured frames; it grows where the fit is poorly constrained.
     """
