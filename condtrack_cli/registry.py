@@ -28,7 +28,7 @@ _BUILTIN_MODULES = (
     "condtrack_cli.motion",
     "condtrack_cli.measure",
     "condtrack_cli.filters",
-    "condtrack_cli.output",
+    "condtrack_cli.io",
 )
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 from condtrack_cli import pipeline, registry
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.output.write import csv_text, write_tracks, writer_for
+from condtrack_cli.io.write import csv_text, write_tracks, writer_for
 from condtrack_cli.queries import read_queries
 
 
@@ -83,7 +83,7 @@ def track_input(
     else:
         write_tracks(tracks, output_path, info, meta, config.output)
     if overlay_path is not None:
-        from condtrack_cli.output.render import render_overlay
+        from condtrack_cli.render import render_overlay
 
         render_overlay(tracks, source, overlay_path, info.fps)
     rows = tracks.has_state

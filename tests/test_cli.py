@@ -13,8 +13,8 @@ from click.testing import CliRunner
 
 from condtrack_cli import registry
 from condtrack_cli.cli import cli
-from condtrack_cli.output.read import read_tracks
-from condtrack_cli.output.write import CSV_COLUMNS
+from condtrack_cli.io.read import read_tracks
+from condtrack_cli.io.write import CSV_COLUMNS
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:

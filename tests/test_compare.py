@@ -15,10 +15,10 @@ from click.testing import CliRunner
 
 from condtrack_cli.cli import cli
 from condtrack_cli.config import OutputSettings
-from condtrack_cli.output.compare import CSV_FIELDS, HDF5_FIELDS, compare_tracks
-from condtrack_cli.output.compare_command import compare_command
-from condtrack_cli.output.read import read_tracks
-from condtrack_cli.output.write import write_tracks
+from condtrack_cli.io.compare import CSV_FIELDS, HDF5_FIELDS, compare_tracks
+from condtrack_cli.cli.compare import compare_command
+from condtrack_cli.io.read import read_tracks
+from condtrack_cli.io.write import write_tracks
 from condtrack_cli.types import Queries, SequenceInfo, Tracks
 
 P, F = 4, 6

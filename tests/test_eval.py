@@ -22,7 +22,7 @@ from condtrack_cli.evaluate import (
     tapvid_metrics,
     tapvid_to_pixels,
 )
-from condtrack_cli.evaluate.command import eval_command
+from condtrack_cli.cli.eval import eval_command
 from condtrack_cli.evaluate.metrics import CHI2_2DOF
 from condtrack_cli.types import Queries, Tracks
 

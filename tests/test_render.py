@@ -13,10 +13,10 @@ from condtrack_cli import SCHEMA_VERSION
 from condtrack_cli.config import OutputSettings
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.frames.readers import FrameSettings, open_frames
-from condtrack_cli.output import render
-from condtrack_cli.output.render import ellipse_axes, render_contact_sheet, render_overlay, sheet_frames
-from condtrack_cli.output.render_command import info_command, render_command
-from condtrack_cli.output.write import write_tracks
+from condtrack_cli import render
+from condtrack_cli.render import ellipse_axes, render_contact_sheet, render_overlay, sheet_frames
+from condtrack_cli.cli.render import info_command, render_command
+from condtrack_cli.io.write import write_tracks
 from condtrack_cli.types import METHODS, Queries, SequenceInfo, Tracks
 
 WIDTH, HEIGHT, N_FRAMES = 96, 64, 8
@@ -226,7 +226,7 @@ def test_render_leaves_nothing_when_the_frames_fail(frames_folder, tmp_path):
 
 
 def test_render_from_csv_pads_to_the_input(frames_folder, tmp_path):
-    from condtrack_cli.output.write import csv_text
+    from condtrack_cli.io.write import csv_text
 
     tracks = make_tracks()
     csv = tmp_path / "t.csv"

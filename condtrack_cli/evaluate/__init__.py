@@ -1,6 +1,6 @@
 """Evaluation: TAP-Vid metrics, covariance coverage, ground-truth readers (``condtrack eval``).
 
-The click command lives in ``condtrack_cli.evaluate.command`` (``eval_command``);
+The click command lives in ``condtrack_cli.cli.eval`` (``eval_command``);
 this package's numerics take plain arrays and do not import click.
 """
 

@@ -33,7 +33,7 @@ import numpy as np
 from condtrack_cli import registry
 from condtrack_cli.evaluate.groundtruth import GroundTruth, load_gt_csv
 from condtrack_cli.evaluate.score import score_tracks
-from condtrack_cli.output.read import read_tracks
+from condtrack_cli.io.read import read_tracks
 
 METHODS = ("stk", "mdr", "clf", "cnlf", "auto")
 REPO = Path(__file__).resolve().parents[2]

@@ -22,7 +22,7 @@ import numpy as np
 from condtrack_cli import COORDINATES, SCHEMA_VERSION, __version__
 from condtrack_cli.config import OutputSettings
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.output.atomic import atomic_path
+from condtrack_cli.io.atomic import atomic_path
 from condtrack_cli.registry import get, register
 from condtrack_cli.types import METHODS, SequenceInfo, Tracks
 

@@ -85,8 +85,8 @@ def render_command(tracks_path: str, input_path: str, output_path: str, sheet_pa
     the top-left pixel (OpenCV's convention).
     """
     from condtrack_cli.frames.readers import FrameSettings, open_frames
-    from condtrack_cli.output.read import read_tracks
-    from condtrack_cli.output.render import render_contact_sheet, render_overlay
+    from condtrack_cli.io.read import read_tracks
+    from condtrack_cli.render import render_contact_sheet, render_overlay
 
     tracks_file, output = Path(tracks_path), Path(output_path)
     sheet = Path(sheet_path) if sheet_path else None
@@ -123,7 +123,7 @@ def info_command(tracks_path: str) -> None:
 
     A CSV holds tracks only; what it does not say is printed as n/a.
     """
-    from condtrack_cli.output.read import read_tracks
+    from condtrack_cli.io.read import read_tracks
 
     path = Path(tracks_path)
     tracks, meta = read_tracks(path)

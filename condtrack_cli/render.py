@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.output.atomic import atomic_path, publish, staging_folder
+from condtrack_cli.io.atomic import atomic_path, publish, staging_folder
 from condtrack_cli.types import METHODS, Tracks
 
 #: chi-square quantile of 0.95 with 2 degrees of freedom: the 95% ellipse is nu^T cov^-1 nu <= this.

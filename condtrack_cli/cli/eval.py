@@ -68,7 +68,7 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
     is reported, on stderr with --json). Frames where PRED has no position count
     as not visible and not within any threshold.
     """
-    from condtrack_cli.output.read import read_tracks
+    from condtrack_cli.io.read import read_tracks
 
     truth = _GT_READERS[gt_format](gt)
     tracks, _ = read_tracks(pred)

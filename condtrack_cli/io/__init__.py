@@ -1,3 +1,3 @@
 """Writers and readers of track files (CSV and HDF5); see docs/schema.md."""
 
-from condtrack_cli.output.write import write_tracks  # noqa: F401
+from condtrack_cli.io.write import write_tracks  # noqa: F401

@@ -13,7 +13,7 @@ from pathlib import Path
 import click
 
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.output.compare import (
+from condtrack_cli.io.compare import (
     ATOL_PX, COV_ATOL, CSV_FIELDS, HDF5_FIELDS, RTOL_COV, Comparison, compare_tracks,
 )
 
@@ -107,7 +107,7 @@ def _compare(ctx: click.Context, path_a: str, path_b: str, atol_px: float, rtol_
 
     Exit status: 0 agree, 1 differ, 2 unreadable file.
     """
-    from condtrack_cli.output.read import read_tracks
+    from condtrack_cli.io.read import read_tracks
 
     try:
         a, _ = read_tracks(path_a)

@@ -173,9 +173,9 @@ def synth(out, scene, samples, seed, size, n_frames, noise) -> None:
 
 
 def _add_commands() -> None:
-    from condtrack_cli.evaluate.command import eval_command
-    from condtrack_cli.output.compare_command import compare_command
-    from condtrack_cli.output.render_command import info_command, render_command
+    from condtrack_cli.cli.eval import eval_command
+    from condtrack_cli.cli.compare import compare_command
+    from condtrack_cli.cli.render import info_command, render_command
 
     for command in (eval_command, compare_command, render_command, info_command):
         cli.add_command(command)

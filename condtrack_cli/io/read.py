@@ -17,7 +17,7 @@ import numpy as np
 
 from condtrack_cli import SCHEMA_VERSION
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.output.write import CSV_COLUMNS
+from condtrack_cli.io.write import CSV_COLUMNS
 from condtrack_cli.types import METHODS, Queries, Tracks
 
 
