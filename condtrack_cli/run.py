@@ -17,7 +17,8 @@ from pathlib import Path
 from condtrack_cli import pipeline, registry
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.io.write import csv_text, write_tracks, writer_for
+from condtrack_cli.io.formats import track_format
+from condtrack_cli.io.write import csv_text, write_tracks
 from condtrack_cli.queries import read_queries
 
 
@@ -42,7 +43,7 @@ class RunSummary:
 
 def check_output_path(path: Path) -> None:
     """Refuse an output path before any work: unknown extension, missing or read-only folder."""
-    writer_for(path)
+    track_format(path, "output")
     folder = path.parent
     if not folder.is_dir():
         raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import click
 
 from condtrack_cli.errors import CondtrackError
+from condtrack_cli.io.formats import is_hdf5
 from condtrack_cli.io.compare import (
     ATOL_PX, COV_ATOL, CSV_FIELDS, HDF5_FIELDS, RTOL_COV, Comparison, compare_tracks,
 )
@@ -115,7 +115,7 @@ def _compare(ctx: click.Context, path_a: str, path_b: str, atol_px: float, rtol_
     except CondtrackError as error:
         click.echo(f"Error: {error}", err=True)
         ctx.exit(UNREADABLE)
-    both_hdf5 = all(Path(path).suffix.lower() != ".csv" for path in (path_a, path_b))
+    both_hdf5 = is_hdf5(path_a) and is_hdf5(path_b)
     fields = HDF5_FIELDS if both_hdf5 else CSV_FIELDS
     result = compare_tracks(a, b, atol_px, rtol_cov, visible_flips, fields=fields, top=top)
     if as_json:

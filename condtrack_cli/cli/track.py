@@ -1,4 +1,4 @@
-"""The ``condtrack`` command line: a thin Click layer over the library (no numerics here)."""
+"""``condtrack track INPUT...``: track one input (or a batch) into a track file; a thin layer over ``run``."""
 
 from __future__ import annotations
 
@@ -9,8 +9,7 @@ from pathlib import Path
 import click
 import numpy as np
 
-from condtrack_cli import __version__, registry
-from condtrack_cli.config import Config, default_yaml, load_config
+from condtrack_cli.config import Config, load_config
 from condtrack_cli.errors import CondtrackError
 
 
@@ -56,13 +55,7 @@ def _configure_logging(quiet: bool) -> None:
     logger.setLevel(logging.ERROR if quiet else logging.WARNING)
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(__version__, prog_name="condtrack")
-def cli() -> None:
-    """Batch point tracking with conditional filters (Arnaud, Mémin & Cernuschi-Frías, RFIA 2004)."""
-
-
-@cli.command()
+@click.command("track")
 @click.argument("inputs", metavar="INPUT...", nargs=-1)
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), help="YAML config (default: configs/default.yaml's values).")
 @click.option("-p", "--queries", "queries_path", type=click.Path(dir_okay=False), help="CSV of query points: frame,x,y[,point_id].")
@@ -129,75 +122,3 @@ def _print_batch_table(summaries, method: str) -> None:
         else:
             table.add_row(s.input, "ok", str(s.n_points), f"{s.visible_share:.1%}", f"{s.seconds_per_frame:.3f}", s.output)
     Console(stderr=True, width=160).print(table)
-
-
-@cli.command()
-@click.option("--default-config", is_flag=True, help="Print the default configuration as commented YAML.")
-def stages(default_config: bool) -> None:
-    """List the registered stages per kind (built-in and from entry points)."""
-    if default_config:
-        click.echo(default_yaml(), nl=False)
-        return
-    for kind in registry.KINDS:
-        click.echo(f"{kind}:")
-        for name in registry.names(kind):
-            click.echo(f"  {name:12s} {registry.get(kind, name).summary}")
-
-
-@cli.command()
-@click.argument("out", type=click.Path(file_okay=False))
-@click.option("--scene", help="Scene to write into OUT: camera_motion, occlusion, ring, illumination, fast.")
-@click.option("--samples", is_flag=True, help="Write the shipped sample sequences under OUT instead (make samples).")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--size", default="320x240", show_default=True, help="WIDTHxHEIGHT in pixels.")
-@click.option("--frames", "n_frames", type=click.IntRange(min=2), help="Number of frames (the scene's default otherwise).")
-@click.option("--noise", type=click.FloatRange(min=0), help="Noise standard deviation (grey levels).")
-def synth(out, scene, samples, seed, size, n_frames, noise) -> None:
-    """Write a synthetic scene with exact ground truth: frames, queries.csv, tracks.csv, labels.csv."""
-    from condtrack_cli.frames.synthetic import make_scene, write_samples, write_scene
-
-    if samples:
-        for name, folder in write_samples(out).items():
-            click.echo(f"{name}: {folder}")
-        return
-    if not scene:
-        raise CondtrackError("synth needs --scene NAME or --samples")
-    width, sep, height = size.partition("x")
-    if not (sep and width.isdigit() and height.isdigit()):
-        raise CondtrackError(f"--size: expected WIDTHxHEIGHT, got {size!r}")
-    try:
-        written = write_scene(make_scene(scene, seed, (int(width), int(height)), n_frames, noise), out)
-    except ValueError as error:
-        raise CondtrackError(str(error)) from None
-    click.echo(f"{scene}: {written}")
-
-
-def _add_commands() -> None:
-    from condtrack_cli.cli.eval import eval_command
-    from condtrack_cli.cli.compare import compare_command
-    from condtrack_cli.cli.render import info_command, render_command
-
-    for command in (eval_command, compare_command, render_command, info_command):
-        cli.add_command(command)
-
-
-_add_commands()
-
-
-def main() -> None:
-    """Console entry point: one-line ``Error: ...`` and a non-zero exit on bad input."""
-    try:
-        code = cli.main(standalone_mode=False)
-    except CondtrackError as error:
-        click.echo(f"Error: {error}", err=True)
-        sys.exit(1)
-    except click.exceptions.Abort:
-        click.echo("Error: interrupted", err=True)
-        sys.exit(130)
-    except KeyboardInterrupt:
-        click.echo("Error: interrupted", err=True)
-        sys.exit(130)
-    except click.ClickException as error:
-        click.echo(f"Error: {error.format_message()}", err=True)
-        sys.exit(error.exit_code)
-    sys.exit(code if isinstance(code, int) else 0)

@@ -9,16 +9,18 @@ unknown ``schema_version``, are refused (docs/schema.md).
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import h5py
 import numpy as np
 
 from condtrack_cli import SCHEMA_VERSION
 from condtrack_cli.errors import CondtrackError
+from condtrack_cli.io.formats import is_hdf5, track_format
 from condtrack_cli.io.write import CSV_COLUMNS
-from condtrack_cli.types import METHODS, Queries, Tracks
+from condtrack_cli.types import METHODS, Queries, SequenceInfo, Tracks
 
 
 def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
@@ -108,8 +110,53 @@ def read_tracks(path: str | Path) -> tuple[Tracks, dict[str, Any]]:
     path = Path(path)
     if not path.is_file():
         raise CondtrackError(f"{path}: no such file")
-    if path.suffix.lower() == ".csv":
-        return _read_csv(path)
-    if path.suffix.lower() in (".h5", ".hdf5"):
-        return _read_hdf5(path)
-    raise CondtrackError(f"{path}: unknown track file format '{path.suffix}' (use .csv, .h5 or .hdf5)")
+    return _read_csv(path) if track_format(path) == "csv" else _read_hdf5(path)
+
+
+@contextlib.contextmanager
+def stored_particles(path: Path, tracks: Tracks) -> Iterator[Any]:
+    """The open ``/particles/xy`` dataset (P, F, N, 2) of an HDF5 track file, or None when it holds none."""
+    if not is_hdf5(path):
+        yield None
+        return
+    with h5py.File(path, "r") as f:
+        dataset = f.get("particles/xy")
+        if dataset is not None and (
+            dataset.ndim != 4 or dataset.shape[:2] != tracks.xy.shape[:2] or dataset.shape[3] != 2
+        ):
+            raise CondtrackError(
+                f"{path}: /particles/xy has shape {dataset.shape}, "
+                f"expected (P, F, N, 2) with (P, F) = {tracks.xy.shape[:2]}"
+            )
+        yield dataset
+
+
+def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, info: SequenceInfo) -> Tracks:
+    """``tracks`` checked against the input; a CSV's tracks (which end at their last row) padded to its length."""
+    ours = f"{info.input} has {info.width}x{info.height} px, {info.n_frames} frames"
+    if "width" in meta:
+        theirs = (int(meta["width"]), int(meta["height"]), int(meta["n_frames"]))
+        if theirs != (info.width, info.height, info.n_frames):
+            raise CondtrackError(
+                f"{tracks_path} was tracked on {theirs[0]}x{theirs[1]} px, {theirs[2]} frames, but {ours}"
+            )
+        return tracks
+    extra = info.n_frames - tracks.xy.shape[1]
+    if extra < 0:
+        raise CondtrackError(f"{tracks_path} has rows up to frame {tracks.xy.shape[1] - 1}, but {ours}")
+
+    def pad(array: np.ndarray, fill: Any) -> np.ndarray:
+        return np.concatenate([array, np.full((len(array), extra) + array.shape[2:], fill, array.dtype)], axis=1)
+
+    return Tracks(tracks.queries, pad(tracks.xy, np.nan), pad(tracks.cov, np.nan), pad(tracks.visible, False),
+                  pad(tracks.method, -1), pad(tracks.z, np.nan), pad(tracks.R, np.nan))
+
+
+def stored_datasets(path: Path) -> tuple[str, str]:
+    """('stored' / 'not stored') for the measurements and the particles of a track file."""
+    if not is_hdf5(path):
+        return "not stored (CSV)", "not stored (CSV)"
+    with h5py.File(path, "r") as f:
+        measurements = "stored" if "measurements/z" in f else "not stored"
+        particles = f.get("particles/xy")
+        return measurements, (f"stored, {particles.shape[2]} per point" if particles is not None else "not stored")

@@ -21,8 +21,8 @@ import numpy as np
 
 from condtrack_cli import COORDINATES, SCHEMA_VERSION, __version__
 from condtrack_cli.config import OutputSettings
-from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io.atomic import atomic_path
+from condtrack_cli.io.formats import track_format
 from condtrack_cli.registry import get, register
 from condtrack_cli.types import METHODS, SequenceInfo, Tracks
 
@@ -108,21 +108,9 @@ EXTRA_ATTRIBUTES = {
     "segmentation": {"meaning": "255 x robust weight of the global fit from frame k to k+1, on frame k's grid"},
 }
 
-#: Output file extension -> registered writer.
-WRITERS = {".csv": "csv", ".h5": "hdf5", ".hdf5": "hdf5"}
-
-
-def writer_for(path: Path) -> str:
-    """The writer name for ``path``'s extension; CondtrackError for an unknown one."""
-    try:
-        return WRITERS[path.suffix.lower()]
-    except KeyError:
-        raise CondtrackError(f"{path}: unknown output format '{path.suffix}' (use .csv, .h5 or .hdf5)") from None
-
-
 def write_tracks(tracks: Tracks, path: str | Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
     """Write ``tracks`` to ``path`` (.csv, .h5 or .hdf5), atomically: the file is whole or absent."""
     path = Path(path)
-    writer = get("output", writer_for(path)).factory
+    writer = get("output", track_format(path, "output")).factory
     with atomic_path(path) as temporary:
         writer(tracks, temporary, info, meta, settings)
