@@ -1,4 +1,4 @@
-"""condtrack: batch point tracking with conditional filters.
+"""condtrack: batch point tracking with conditional filters (``import condtrack_cli as ct; ct.track(...)``).
 
 Implements the conditional linear (CLF) and nonlinear (CNLF) filters of Arnaud,
 Mémin & Cernuschi-Frías, "Filtrage conditionnel pour la trajectographie dans des
@@ -15,3 +15,14 @@ COORDINATES = (
     "pixels; x to the right, y down; origin (0,0) at the centre of the top-left pixel "
     "(OpenCV convention)"
 )
+
+#: The Python API (``condtrack_cli.api``), imported on first use so that ``import condtrack_cli`` stays light.
+_API = ("track", "read_tracks", "Tracks")
+
+
+def __getattr__(name: str):
+    if name in _API:
+        from condtrack_cli import api
+
+        return getattr(api, name)
+    raise AttributeError(f"module 'condtrack_cli' has no attribute {name!r}")

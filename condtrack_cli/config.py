@@ -118,6 +118,12 @@ def valid_methods() -> list[str]:
     return registry.names("filter")
 
 
+def check_method(method: str) -> None:
+    """CondtrackError naming the key ``filter.method`` and the valid methods when ``method`` is not registered."""
+    if method not in valid_methods():
+        raise CondtrackError(f"config key 'filter.method': unknown method {method!r}; valid: {', '.join(valid_methods())}")
+
+
 def _format_validation_error(prefix: str, error: ValidationError, model: type[BaseModel]) -> str:
     first = error.errors()[0]
     key = ".".join([prefix, *map(str, first["loc"])])
@@ -161,8 +167,7 @@ def resolve(raw: Mapping[str, Any]) -> Config:
         raise CondtrackError(f"config key 'filter': expected a mapping, got {filter_raw!r}")
     filter_raw = dict(filter_raw)
     method = filter_raw.pop("method", DEFAULT_METHOD)
-    if method not in valid_methods():
-        raise CondtrackError(f"config key 'filter.method': unknown method {method!r}; valid: {', '.join(valid_methods())}")
+    check_method(method)
     filters = {}
     for name in registry.names("filter"):
         filters[name] = _validate(f"filter.{name}", registry.get("filter", name).settings, filter_raw.pop(name, None) or {})
@@ -220,9 +225,13 @@ def read_yaml(path: str | Path) -> dict:
     return raw
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] = (), method: str | None = None) -> Config:
-    """The validated config: defaults, then the file, then ``--set`` overrides, then ``-m``."""
-    raw = read_yaml(path) if path is not None else {}
+def load_config(
+    path: str | Path | Mapping[str, Any] | None = None, overrides: list[str] = (), method: str | None = None,
+) -> Config:
+    """The validated config: defaults, then the file (or a nested mapping), then ``--set`` overrides, then ``-m``."""
+    if path is not None and not isinstance(path, (str, Path, Mapping)):
+        raise CondtrackError(f"config: expected a YAML path or a nested mapping, got {type(path).__name__}")
+    raw = read_yaml(path) if isinstance(path, (str, Path)) else dict(path or {})
     raw = copy.deepcopy(raw)
     for text in overrides:
         _apply_override(raw, *parse_override(text))

@@ -51,20 +51,40 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
             line = int(np.argmax(values[name] != np.round(values[name]))) + 2
             raise CondtrackError(f"{path}: row {line}, column '{name}': must be a whole number")
     point_id = values["point_id"].astype(np.int64) if "point_id" in values else np.arange(len(body), dtype=np.int64)
-    frame = values["frame"].astype(np.int64)
-    xy = np.column_stack([values["x"], values["y"]])
+    return checked_queries(str(path), point_id, values["frame"].astype(np.int64),
+                           np.column_stack([values["x"], values["y"]]), info, first_row=2)
+
+
+def queries_from_rows(rows: np.ndarray, info: SequenceInfo) -> Queries:
+    """Queries from an (N, 3) array of ``frame, x, y`` rows (points numbered 0..N-1), checked like a CSV's."""
+    rows = np.asarray(rows, dtype=np.float64)
+    if rows.ndim != 2 or rows.shape[1] != 3 or not len(rows):
+        raise CondtrackError(f"queries: expected a non-empty (N, 3) array of frame, x, y; got shape {rows.shape}")
+    if not np.isfinite(rows).all() or not np.all(rows[:, 0] == np.round(rows[:, 0])):
+        row = int(np.argmax(~np.isfinite(rows).all(axis=1) | (rows[:, 0] != np.round(rows[:, 0]))))
+        raise CondtrackError(f"queries: row {row}: frame must be a whole number and x, y finite")
+    return checked_queries("queries", np.arange(len(rows), dtype=np.int64), rows[:, 0].astype(np.int64), rows[:, 1:],
+                           info, first_row=0)
+
+
+def checked_queries(where: str, point_id: np.ndarray, frame: np.ndarray, xy: np.ndarray, info: SequenceInfo,
+                    first_row: int) -> Queries:
+    """Queries ordered by point_id after checking ids, frames and positions against the sequence.
+
+    ``where`` names the source in errors, whose row i is reported as ``first_row + i``.
+    """
     unique_ids, counts = np.unique(point_id, return_counts=True)
     if (counts > 1).any():
-        raise CondtrackError(f"{path}: point_id {int(unique_ids[np.argmax(counts > 1)])} appears more than once")
+        raise CondtrackError(f"{where}: point_id {int(unique_ids[np.argmax(counts > 1)])} appears more than once")
     bad_frame = (frame < 0) | (frame >= info.n_frames)
     if bad_frame.any():
-        line = int(np.argmax(bad_frame)) + 2
-        raise CondtrackError(f"{path}: row {line}: frame {frame[line - 2]} is outside the sequence (0..{info.n_frames - 1})")
+        line = int(np.argmax(bad_frame)) + first_row
+        raise CondtrackError(f"{where}: row {line}: frame {frame[line - first_row]} is outside the sequence (0..{info.n_frames - 1})")
     inside = (xy[:, 0] >= -0.5) & (xy[:, 0] <= info.width - 0.5) & (xy[:, 1] >= -0.5) & (xy[:, 1] <= info.height - 0.5)
     if not inside.all():
-        line = int(np.argmax(~inside)) + 2
+        line = int(np.argmax(~inside)) + first_row
         raise CondtrackError(
-            f"{path}: row {line}: point ({xy[line - 2, 0]:g}, {xy[line - 2, 1]:g}) is outside the "
+            f"{where}: row {line}: point ({xy[line - first_row, 0]:g}, {xy[line - first_row, 1]:g}) is outside the "
             f"{info.width}x{info.height} frame"
         )
     order = np.argsort(point_id, kind="stable")

@@ -94,3 +94,33 @@ def get(kind: str, name: str) -> StageSpec:
     except KeyError:
         valid = ", ".join(names(kind)) or "(none)"
         raise ValueError(f"unknown {kind} stage {name!r}; valid: {valid}") from None
+
+
+#: Methods with fixed codes in track files (docs/schema.md): code i is ``BUILTIN_METHOD_CODES[i]``.
+BUILTIN_METHOD_CODES = ("stk", "mdr", "clf", "cnlf")
+#: Built-in filters that hand each point to other filters: their rows carry those filters' codes, none of their own.
+ROUTERS = ("auto",)
+
+
+def method_codes() -> tuple[str, ...]:
+    """Names of the methods a track file can hold, in code order (``Tracks.method`` indexes this).
+
+    The built-in codes come first and never move; every other registered filter
+    (from an entry point) follows in name order.
+    """
+    extra = [name for name in names("filter") if name not in BUILTIN_METHOD_CODES + ROUTERS]
+    return BUILTIN_METHOD_CODES + tuple(extra)
+
+
+def method_code(name: str) -> int:
+    """The code of method ``name`` in track files; ValueError naming the valid methods otherwise."""
+    codes = method_codes()
+    if name not in codes:
+        raise ValueError(f"unknown method {name!r}; valid: {', '.join(codes)}")
+    return codes.index(name)
+
+
+def tracking_methods() -> tuple[str, ...]:
+    """Every ``-m`` method in presentation order: the built-in ones, the routers, then the registered others."""
+    codes = method_codes()
+    return codes[: len(BUILTIN_METHOD_CODES)] + ROUTERS + codes[len(BUILTIN_METHOD_CODES):]

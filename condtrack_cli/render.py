@@ -33,19 +33,21 @@ import numpy as np
 
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io.atomic import atomic_path, publish, staging_folder
-from condtrack_cli.types import METHODS, Tracks
+from condtrack_cli.registry import method_codes
+from condtrack_cli.types import Tracks
 
 #: chi-square quantile of 0.95 with 2 degrees of freedom: the 95% ellipse is nu^T cov^-1 nu <= this.
 CHI2_95_2DOF = 5.991
 #: Fractional bits of the fixed-point coordinates passed to cv2 (1/16 px).
 SHIFT = 4
-#: BGR colour per method, in the order of ``METHODS``.
-PALETTE = np.array([
-    (0, 220, 255),   # stk: yellow
-    (255, 160, 0),   # mdr: azure
-    (80, 220, 0),    # clf: green
-    (60, 60, 255),   # cnlf: red
-], dtype=np.int64)
+#: BGR colour per method name; a method not listed (one registered by another package) is drawn in ``OTHER_COLOUR``.
+PALETTE = {
+    "stk": np.array((0, 220, 255)),   # yellow
+    "mdr": np.array((255, 160, 0)),   # azure
+    "clf": np.array((80, 220, 0)),    # green
+    "cnlf": np.array((60, 60, 255)),  # red
+}
+OTHER_COLOUR = np.array((255, 0, 255))  # magenta
 #: Frame rate of the video when the input has none (a folder of frames).
 DEFAULT_FPS = 25.0
 #: Codec tried for the video; when it does not open, a folder of PNGs is written instead.
@@ -92,8 +94,9 @@ def _fixed(points: np.ndarray) -> np.ndarray:
 
 
 def _colour(code: int, factor: float = 1.0) -> tuple[int, int, int]:
-    """BGR of method ``code`` scaled by ``factor`` (darker below 1)."""
-    return tuple(int(round(channel * factor)) for channel in PALETTE[code])
+    """BGR of method ``code`` (an index into ``registry.method_codes()``) scaled by ``factor`` (darker below 1)."""
+    colour = PALETTE.get(method_codes()[code], OTHER_COLOUR)
+    return tuple(int(round(channel * factor)) for channel in colour)
 
 
 def _polylines(image: np.ndarray, lines: np.ndarray, colour: tuple[int, int, int], closed: bool) -> None:
@@ -176,7 +179,7 @@ class Overlay:
         points = points[np.isfinite(points).all(axis=-1)]
         column, row = np.rint(points).astype(np.int64).T
         inside = (column >= 0) & (column < image.shape[1]) & (row >= 0) & (row < image.shape[0])
-        tint = (PALETTE[METHODS.index("cnlf")] + 255) // 2
+        tint = (PALETTE["cnlf"] + 255) // 2
         image[row[inside], column[inside]] = tint
 
     def _draw_legend(self, image: np.ndarray) -> None:
@@ -184,7 +187,7 @@ class Overlay:
         (_, height), baseline = cv2.getTextSize("Xg", _FONT, _FONT_SCALE, 1)
         step = height + baseline + 3
         for row, code in enumerate(self.methods):
-            _put_text(image, METHODS[code], 4, 4 + height + row * step, _colour(code))
+            _put_text(image, method_codes()[code], 4, 4 + height + row * step, _colour(code))
         _put_text(image, "x = not visible", 4, 4 + height + len(self.methods) * step, _HIDDEN_COLOUR)
 
 

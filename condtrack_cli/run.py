@@ -14,12 +14,11 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
-from condtrack_cli import pipeline, registry
+from condtrack_cli.api import track_sequence
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.write import csv_text, write_tracks
-from condtrack_cli.queries import read_queries
 
 
 @dataclass(frozen=True)
@@ -64,25 +63,14 @@ def track_input(
         check_output_path(Path(output_path))
     if overlay_path is not None:
         check_overlay_path(Path(overlay_path))
-    frames_stage = config.stage("frames")
-    source = registry.get("frames", frames_stage.name).factory(frames_stage.settings, input_path)
-    info = source.info
-    config.check_fits_frame(info.width, info.height)
-    queries = read_queries(queries_path, info) if queries_path else None
-    backward_frames = int(queries.frame.max()) + 1 if queries is not None and queries.frame.max() > 0 else 0
     started = time.perf_counter()
-    progress = progress_factory(info.n_frames + backward_frames) if progress_factory else None
-    try:
-        tracks = pipeline.run(source, info, config, queries, seed=seed, on_frame=progress)
-    finally:
-        if progress is not None:
-            progress.close()
+    result, source = track_sequence(input_path, config, queries_path, seed, progress_factory)
     seconds = time.perf_counter() - started
-    meta = {"config": config.to_yaml(), "method": config.method, "seed": seed}
+    tracks, info = result.result, result.info
     if output_path is None:
         sys.stdout.write(csv_text(tracks))
     else:
-        write_tracks(tracks, output_path, info, meta, config.output)
+        write_tracks(tracks, output_path, info, result.attributes, config.output)
     if overlay_path is not None:
         from condtrack_cli.render import render_overlay
 

@@ -76,8 +76,8 @@ class FrameEstimate:
     z: (P, 2) raw measurement (NaN where none was made).
     R: (P, 2, 2) measurement covariance in px^2; +inf on the diagonal when the
        correlation surface carried no information, NaN where no measurement.
-    method: (P,) int8 index into ``METHODS`` of the filter that produced the row
-       (-1 where the point has no state).
+    method: (P,) int8 code of the filter that produced the row, an index into
+       ``registry.method_codes()`` (-1 where the point has no state).
     """
 
     xy: np.ndarray
@@ -88,10 +88,6 @@ class FrameEstimate:
     method: np.ndarray
 
 
-#: Method names as written in outputs; ``FrameEstimate.method`` indexes this tuple.
-METHODS = ("stk", "mdr", "clf", "cnlf")
-
-
 @dataclass(frozen=True)
 class Tracks:
     """A whole tracking result, as written to CSV and HDF5.
@@ -99,7 +95,7 @@ class Tracks:
     xy: (P, F, 2) float64, NaN where the point has no state.
     cov: (P, F, 2, 2) float64 px^2, NaN where undefined, inf where unbounded.
     visible: (P, F) bool.
-    method: (P, F) int8 index into ``METHODS``, -1 where no state.
+    method: (P, F) int8 index into ``registry.method_codes()``, -1 where no state.
     z, R: raw measurements, (P, F, 2) and (P, F, 2, 2), as in ``FrameEstimate``.
     extras: optional HDF5 datasets by path, written when configured:
        ``particles/xy`` (P, F, N, 2) float32, the CNLF's particles (NaN where
@@ -124,7 +120,10 @@ class Tracks:
 
     def point_methods(self) -> list[str]:
         """(P,) the method that produced most of each point's frames."""
-        counts = (self.method[:, :, None] == np.arange(len(METHODS))).sum(axis=1)  # (P, M)
-        names = np.array(METHODS + ("",), dtype=object)
-        best = np.where(counts.any(axis=1), counts.argmax(axis=1), len(METHODS))
+        from condtrack_cli.registry import method_codes
+
+        codes = method_codes()
+        counts = (self.method[:, :, None] == np.arange(len(codes))).sum(axis=1)  # (P, M)
+        names = np.array(codes + ("",), dtype=object)
+        best = np.where(counts.any(axis=1), counts.argmax(axis=1), len(codes))
         return list(names[best])

@@ -11,7 +11,7 @@ from condtrack_cli.evaluate.score import score_tracks
 from condtrack_cli.filters import kalman
 from condtrack_cli.filters.cnlf import CNLFSettings, propagate, resample
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise
-from condtrack_cli.types import METHODS
+from condtrack_cli.registry import method_code
 
 from conftest import SAMPLES, sample_inputs
 
@@ -97,7 +97,7 @@ def test_auto_routes_the_disk_to_cnlf_and_the_background_to_clf(ring_runs):
     runs, on_disk = ring_runs
     tracks = runs["auto"][0]
     rows = tracks.method >= 0
-    on_cnlf = tracks.method == METHODS.index("cnlf")
+    on_cnlf = tracks.method == method_code("cnlf")
     assert on_cnlf[on_disk].sum() / rows[on_disk].sum() >= 0.8  # measured 0.967
     # measured 0.063: background points queried as they emerge from behind the disk, lost at once backward
     assert on_cnlf[~on_disk].sum() / rows[~on_disk].sum() <= 0.10

@@ -18,7 +18,7 @@ from condtrack_cli.render import ellipse_axes, render_contact_sheet, render_over
 from condtrack_cli.cli.info import info_command
 from condtrack_cli.cli.render import render_command
 from condtrack_cli.io.write import write_tracks
-from condtrack_cli.types import METHODS, Queries, SequenceInfo, Tracks
+from condtrack_cli.types import Queries, SequenceInfo, Tracks
 
 WIDTH, HEIGHT, N_FRAMES = 96, 64, 8
 CONFIG = "x: 1\n"
@@ -128,7 +128,7 @@ def test_drawing_follows_the_states(frames_folder):
     assert not changed[40, 74]  # no ellipse around point 1 while its cov is infinite
     assert changed[15, 80 + 7]  # point 3's ellipse: semi-axis sqrt(5.991 * 9) = 7.3 px along x
     assert not changed[55:, 60:].any()  # nothing drawn far from every point (legend is top-left)
-    assert (drawn[20, 26] == render.PALETTE[METHODS.index("clf")]).all()
+    assert (drawn[20, 26] == render.PALETTE["clf"]).all()
     before = overlay.draw(1, raw[1]).astype(int)
     assert not (np.abs(before - grey(raw[1])).max(axis=-1) > 0)[15, 80]  # point 3 has no state before frame 2
 
@@ -139,7 +139,7 @@ def test_particles_are_drawn_as_pixels(frames_folder):
     particles[1, :, :, 0] = [60, 61, 62, 63, 200]  # the last one outside the image
     particles[1, :, :, 1] = 58
     drawn = render.Overlay(tracks, particles=particles).draw(2, raw[2])
-    tint = (render.PALETTE[METHODS.index("cnlf")] + 255) // 2
+    tint = (render.PALETTE["cnlf"] + 255) // 2
     assert (drawn[58, 60:64] == tint).all()
     with pytest.raises(ValueError, match="particles"):
         render.Overlay(tracks, particles=particles[:, :3])

@@ -17,7 +17,8 @@ from condtrack_cli.config import OutputSettings
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io.read import read_tracks
 from condtrack_cli.io.write import CSV_COLUMNS, FLOAT_FORMATS, write_tracks
-from condtrack_cli.types import METHODS, Queries, SequenceInfo, Tracks
+from condtrack_cli.registry import BUILTIN_METHOD_CODES
+from condtrack_cli.types import Queries, SequenceInfo, Tracks
 
 from conftest import REPO
 
@@ -113,17 +114,17 @@ def test_csv_columns_formats_and_header_match_the_doc(tmp_path):
     rows = [line.split(",") for line in lines[1:-1]]
     assert all(len(row) == len(CSV_COLUMNS) for row in rows)
     assert len(rows) == P * F - 1  # point 9 has no state on frame 0
-    assert {row[8] for row in rows} <= set(METHODS)
+    assert {row[8] for row in rows} <= set(BUILTIN_METHOD_CODES)
     assert rows[2][4:7] == ["inf", "inf", "inf"] and rows[-1][4:7] == ["nan", "nan", "nan"]
 
 
 def test_method_codes_match_the_doc(tmp_path):
     table = doc_table("## Methods")
-    assert [(int(row["code"]), row["name"]) for row in table] == [(-1, "")] + list(enumerate(METHODS))
+    assert [(int(row["code"]), row["name"]) for row in table] == [(-1, "")] + list(enumerate(BUILTIN_METHOD_CODES))
     path = tmp_path / "t.h5"
     write_small(path)
     with h5py.File(path) as f:
-        assert f["tracks/method_code"].attrs["names"] == ",".join(METHODS)
+        assert f["tracks/method_code"].attrs["names"] == ",".join(BUILTIN_METHOD_CODES)
         assert [m.decode() for m in f["tracks/method"][()]] == ["clf", "mdr", "stk"]
 
 

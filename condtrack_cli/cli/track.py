@@ -7,41 +7,30 @@ import sys
 from pathlib import Path
 
 import click
-import numpy as np
 
-from condtrack_cli.config import Config, load_config
+from condtrack_cli import registry
+from condtrack_cli.config import Config, check_method, load_config
 from condtrack_cli.errors import CondtrackError
+from condtrack_cli.progress import Progress
 
 
-class _Progress:
-    """Per-frame progress on stderr: a rich bar on a terminal, a plain line every tenth otherwise."""
+class _MethodChoice(click.Choice):
+    """``-m``: a choice among the registered tracking methods, read from the registry (entry points included) when needed."""
 
-    def __init__(self, n_frames: int):
-        self.n_frames, self.done = n_frames, 0
-        self.step = max(1, n_frames // 10)
-        self.bar = None
-        if sys.stderr.isatty():
-            from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    def __init__(self) -> None:
+        super().__init__(())
 
-            self.bar = Progress(
-                TextColumn("tracking"), BarColumn(), MofNCompleteColumn(), TextColumn("{task.fields[active]} active"),
-                TimeRemainingColumn(), console=Console(stderr=True), transient=True,
-            )
-            self.task = self.bar.add_task("track", total=n_frames, active=0)
-            self.bar.start()
+    @property
+    def choices(self) -> tuple[str, ...]:
+        return registry.tracking_methods()
 
-    def __call__(self, index: int, estimate) -> None:
-        self.done += 1
-        active = int(np.isfinite(estimate.xy[:, 0]).sum())
-        if self.bar is not None:
-            self.bar.update(self.task, completed=self.done, active=active)
-        elif self.done % self.step == 0 or self.done == self.n_frames:
-            click.echo(f"frame {self.done}/{self.n_frames}: {active} active points", err=True)
+    @choices.setter
+    def choices(self, _value) -> None:
+        """Click's constructor sets the choices; they are the registry's instead."""
 
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.stop()
+    def convert(self, value, param, ctx) -> str:
+        check_method(value)  # the same one-line error as filter.method in a YAML config
+        return value
 
 
 def _configure_logging(quiet: bool) -> None:
@@ -59,7 +48,7 @@ def _configure_logging(quiet: bool) -> None:
 @click.argument("inputs", metavar="INPUT...", nargs=-1)
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), help="YAML config (default: configs/default.yaml's values).")
 @click.option("-p", "--queries", "queries_path", type=click.Path(dir_okay=False), help="CSV of query points: frame,x,y[,point_id].")
-@click.option("-m", "--method", help="Tracking method (overrides filter.method); see `condtrack stages`.")
+@click.option("-m", "--method", type=_MethodChoice(), help="Tracking method (overrides filter.method); see `condtrack stages`.")
 @click.option("-o", "--output", "output_path", type=click.Path(dir_okay=False), help="Output .h5/.hdf5 or .csv (default: CSV on stdout).")
 @click.option("--overlay", "overlay_path", type=click.Path(dir_okay=False), help="Also render an overlay video (.mp4) of the tracks.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
@@ -85,7 +74,7 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         raise CondtrackError("no INPUT given (a frame folder or a video file, or --from-list FILE)")
     config: Config = load_config(config_path, list(overrides), method)
     if len(inputs) == 1 and out_dir is None:
-        progress = None if quiet else _Progress
+        progress = None if quiet else Progress
         summary = track_input(inputs[0], config, queries_path, output_path, seed, progress, overlay_path)
         if not quiet:
             click.echo(summary.line(config.method), err=True)

@@ -35,7 +35,6 @@ from condtrack_cli.evaluate.groundtruth import GroundTruth, load_gt_csv
 from condtrack_cli.evaluate.score import score_tracks
 from condtrack_cli.io.read import read_tracks
 
-METHODS = ("stk", "mdr", "clf", "cnlf", "auto")
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -100,7 +99,6 @@ def _fmt(value) -> str:
 
 def accuracy_table(max_points: int, work: Path) -> list[str]:
     """Markdown rows: every method on every sequence with ground truth."""
-    built = set(registry.names("filter"))
     lines = [
         "| sequence | method | points | <δ_avg | AJ | OA | cov95 | median err (px) | wall (s) | × stk |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -108,10 +106,7 @@ def accuracy_table(max_points: int, work: Path) -> list[str]:
     for name, folder, queries, gt_path in sequences(max_points, work):
         truth = load_gt_csv(gt_path)
         stk_seconds = None
-        for method in METHODS:
-            if method not in built:
-                lines.append(f"| {name} | {method} | | not built yet | | | | | | |")
-                continue
+        for method in registry.tracking_methods():
             out = work / f"{name.replace('/', '_')}.{method}.h5"
             seconds, _, code, message = run_track([str(folder), "-p", str(queries), "-m", method, "-o", str(out)])
             if code != 0:
@@ -147,10 +142,7 @@ def speed_table(work: Path, n_points: int = 500, n_frames: int = 60, size: tuple
         "|---|---|---|---|---|",
     ]
     stk_seconds = None
-    for method in METHODS:
-        if method not in registry.names("filter"):
-            lines.append(f"| {method} | not built yet | | | |")
-            continue
+    for method in registry.tracking_methods():
         seconds, rss, code, message = run_track([str(folder), "-p", str(queries), "-m", method, "-o", str(work / f"speed.{method}.h5")])
         if code != 0:
             lines.append(f"| {method} | failed: {message} | | | |")

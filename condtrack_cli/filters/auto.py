@@ -45,8 +45,8 @@ from condtrack_cli.filters.cnlf import CNLFTracker
 from condtrack_cli.filters.reference import ReferenceMatcher
 from condtrack_cli.filters import kalman
 from condtrack_cli.motion.robust import displacement, neighbourhood_support
-from condtrack_cli.registry import register
-from condtrack_cli.types import METHODS, Frame, FrameEstimate, Queries, SequenceInfo, Tracks
+from condtrack_cli.registry import method_code, register
+from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tracks
 
 
 class AutoSettings(StageSettings):
@@ -147,7 +147,7 @@ class AutoTracker(Tracker):
         """Copy the state of points ``index`` from ``tracker`` into the router's report."""
         for name in ("xy", "cov", "visible", "z", "R"):
             getattr(self, name)[index] = getattr(tracker, name)[index]
-        self.method_code[index] = METHODS.index(tracker.method)
+        self.method_code[index] = method_code(tracker.method)
 
     def finish(self, history: list[FrameEstimate]) -> Tracks:
         """Tracks whose CNLF segments still open at the end carry the particle path means."""

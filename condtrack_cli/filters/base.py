@@ -14,7 +14,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from condtrack_cli.types import METHODS, Frame, FrameEstimate, Queries, SequenceInfo, Tracks
+from condtrack_cli.registry import method_code
+from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tracks
 
 
 class Tracker:
@@ -44,7 +45,7 @@ class Tracker:
         if new.size:
             self.xy[new] = self.queries.xy[new]
             self.visible[new] = True
-            self.method_code[new] = METHODS.index(self.method)
+            self.method_code[new] = method_code(self.method)
             self._start(new, frame)
         return FrameEstimate(
             xy=self.xy.copy(), cov=self.cov.copy(), visible=self.visible.copy(),

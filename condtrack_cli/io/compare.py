@@ -30,7 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from condtrack_cli.types import METHODS, Tracks
+from condtrack_cli.registry import method_codes
+from condtrack_cli.types import Tracks
 
 #: Default absolute tolerance on positions (px): the CSV keeps 6 decimals.
 ATOL_PX = 1e-4
@@ -199,7 +200,7 @@ def compare_tracks(
     if "method" in fields:
         va, vb = _padded(a.method, ia, n_frames, -1), _padded(b.method, ib, n_frames, -1)
         differs = both & (va != vb)
-        names = np.array(METHODS + ("none",), dtype=object)  # code -1 -> "none"
+        names = np.array(method_codes() + ("none",), dtype=object)  # code -1 -> "none"
         add("method", differs, differs.astype(float), names[va], names[vb])
     for prefix, array_a, array_b, atol, rtol, entries in (
         ("", a.xy, b.xy, atol_px, 0.0, _COORDINATES),

@@ -20,7 +20,8 @@ from condtrack_cli import SCHEMA_VERSION
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io.formats import is_hdf5, track_format
 from condtrack_cli.io.write import CSV_COLUMNS
-from condtrack_cli.types import METHODS, Queries, SequenceInfo, Tracks
+from condtrack_cli.registry import method_codes
+from condtrack_cli.types import Queries, SequenceInfo, Tracks
 
 
 def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
@@ -42,10 +43,7 @@ def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
         visible = table[:, 7].astype(np.int64).astype(bool)
     except ValueError as error:
         raise CondtrackError(f"{path}: a value is not a number ({error})") from None
-    unknown = set(np.unique(table[:, 8])) - set(METHODS)
-    if unknown:
-        raise CondtrackError(f"{path}: unknown method {sorted(unknown)[0]!r}; valid: {', '.join(METHODS)}")
-    method = np.select([table[:, 8] == name for name in METHODS], np.arange(len(METHODS))).astype(np.int8)
+    method = _codes_of(path, table[:, 8])
     point_ids, first_row, point_index = np.unique(ids, return_index=True, return_inverse=True)
     n_points, n_frames = len(point_ids), (int(frames.max()) + 1 if len(frames) else 0)
     xy = np.full((n_points, n_frames, 2), np.nan)
@@ -64,6 +62,15 @@ def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
     return tracks, {"n_frames": n_frames}
 
 
+def _codes_of(path: Path, names: np.ndarray) -> np.ndarray:
+    """int8 codes (indices into ``registry.method_codes()``) of method ``names``; CondtrackError for an unregistered one."""
+    codes = method_codes()
+    unknown = set(np.unique(names)) - set(codes)
+    if unknown:
+        raise CondtrackError(f"{path}: unknown method {sorted(unknown)[0]!r}; valid: {', '.join(codes)}")
+    return np.select([names == name for name in codes], np.arange(len(codes))).astype(np.int8)
+
+
 def _check_layout(tracks: Tracks) -> None:
     """ValueError when arrays read from an HDF5 file depart from the schema's shapes or method codes."""
     p, f = len(tracks.queries), (tracks.xy.shape[1] if tracks.xy.ndim == 3 else -1)
@@ -73,8 +80,8 @@ def _check_layout(tracks: Tracks) -> None:
     ):
         if array.shape != shape:
             raise ValueError(f"{name} has shape {array.shape}, expected {shape}")
-    if ((tracks.method < -1) | (tracks.method >= len(METHODS))).any():
-        raise ValueError(f"method_code outside -1 .. {len(METHODS) - 1}")
+    if ((tracks.method < -1) | (tracks.method >= len(method_codes()))).any():
+        raise ValueError(f"method_code outside -1 .. {len(method_codes()) - 1}")
 
 
 def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
@@ -97,7 +104,9 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
             nan = np.full_like(xy, np.nan)
             z = f["measurements/z"][()] if "measurements" in f else nan
             R = f["measurements/R"][()] if "measurements" in f else np.full(xy.shape + (2,), np.nan)
-            tracks = Tracks(queries, xy, t["cov"][()], t["visible"][()].astype(bool), t["method_code"][()], z, R)
+            names = np.array(t["method_code"].attrs["names"].split(","))
+            file_codes = np.append(_codes_of(path, names), np.int8(-1))  # the file's code -1 (last) stays -1
+            tracks = Tracks(queries, xy, t["cov"][()], t["visible"][()].astype(bool), file_codes[t["method_code"][()]], z, R)
             _check_layout(tracks)
         except (KeyError, OSError, RuntimeError, TypeError, ValueError, IndexError) as error:
             # h5py reports damaged metadata as OSError or RuntimeError

@@ -23,8 +23,8 @@ from condtrack_cli import COORDINATES, SCHEMA_VERSION, __version__
 from condtrack_cli.config import OutputSettings
 from condtrack_cli.io.atomic import atomic_path
 from condtrack_cli.io.formats import track_format
-from condtrack_cli.registry import get, register
-from condtrack_cli.types import METHODS, SequenceInfo, Tracks
+from condtrack_cli.registry import get, method_codes, register
+from condtrack_cli.types import SequenceInfo, Tracks
 
 CSV_COLUMNS = ("point_id", "frame", "x", "y", "cov_xx", "cov_xy", "cov_yy", "visible", "method")
 FLOAT_FORMATS = {"x": "%.6f", "y": "%.6f", "cov_xx": "%.6e", "cov_xy": "%.6e", "cov_yy": "%.6e"}
@@ -35,7 +35,7 @@ def csv_text(tracks: Tracks) -> str:
     points, frames = np.nonzero(tracks.has_state)  # row-major: by point then frame
     xy = tracks.xy[points, frames]
     cov = tracks.cov[points, frames]
-    methods = np.array(METHODS, dtype=object)[tracks.method[points, frames]]
+    methods = np.array(method_codes(), dtype=object)[tracks.method[points, frames]]
     columns = [
         np.char.mod("%d", tracks.queries.point_id[points]),
         np.char.mod("%d", frames),
@@ -91,7 +91,7 @@ def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, A
         _dataset(group, "visible", tracks.visible, settings)
         _dataset(group, "method", np.array(tracks.point_methods(), dtype=h5py.string_dtype()), settings)
         group["method"].attrs["meaning"] = "the method that produced most of the point's frames"
-        _dataset(group, "method_code", tracks.method, settings, names=",".join(METHODS),
+        _dataset(group, "method_code", tracks.method, settings, names=",".join(method_codes()),
                  meaning="per frame: index into names; -1 where no state")
         _dataset(f, "queries", np.column_stack([q.frame, q.xy]).astype(np.float64), settings, columns="frame,x,y")
         for name, data in tracks.extras.items():
