@@ -1,0 +1,137 @@
+"""Stages from other packages, and every registered stage of every kind, run end to end."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+
+import cv2
+import numpy as np
+import pytest
+
+import condtrack_cli as ct
+from condtrack_cli import registry
+from condtrack_cli.evaluate.groundtruth import load_gt_csv
+from condtrack_cli.io.formats import FORMATS
+
+from conftest import SAMPLES
+
+SAMPLE = SAMPLES / "ring"
+
+#: A filter package that condtrack does not know: every point stays at its query position.
+HOLD_PACKAGE = '''
+    import numpy as np
+    from condtrack_cli.config import StageSettings
+    from condtrack_cli.filters.base import Tracker
+    from condtrack_cli.registry import register
+
+    class HoldSettings(StageSettings):
+        variance: float = 4.0
+
+    class HoldTracker(Tracker):
+        method = "hold"
+
+        def __init__(self, settings, queries, info):
+            super().__init__(queries, info)
+            self.variance = settings.variance
+
+        def _start(self, index, frame):
+            self.cov[index] = self.variance * np.eye(2)
+
+        def _advance(self, index, prev, frame):
+            """Positions, covariances and visibility stay as they are."""
+
+    @register("filter", "hold", HoldSettings, "every point stays at its query position")
+    def make_hold(settings, queries, info, **_context):
+        return HoldTracker(settings, queries, info)
+'''
+
+
+@pytest.fixture
+def hold_package(tmp_path):
+    """A folder holding the package ``thirdparty_hold`` and its dist-info with a ``condtrack.stages`` entry point."""
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "thirdparty_hold.py").write_text(textwrap.dedent(HOLD_PACKAGE))
+    info = site / "thirdparty_hold-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: thirdparty-hold\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[condtrack.stages]\nhold = thirdparty_hold\n")
+    return site
+
+
+def run_with(site, *args):
+    """``python -m condtrack_cli ARGS`` (or ``python -c`` code) with ``site`` on the path, as an installed package."""
+    env = {**os.environ, "PYTHONPATH": str(site)}
+    return subprocess.run([sys.executable, *args], capture_output=True, text=True, env=env)
+
+
+def test_entry_point_filter_tracks_renders_and_benchmarks(tmp_path, hold_package):
+    queries = SAMPLE / "queries.csv"
+    for suffix in (".h5", ".csv"):
+        done = run_with(hold_package, "-m", "condtrack_cli", "track", str(SAMPLE), "-p", str(queries), "-m", "hold",
+                        "-o", str(tmp_path / f"hold{suffix}"), "-q")
+        assert done.returncode == 0, done.stderr
+    rows = (tmp_path / "hold.csv").read_text().splitlines()[1:]
+    assert rows and {row.rsplit(",", 1)[1] for row in rows} == {"hold"}
+    sheet = tmp_path / "sheet.png"
+    done = run_with(hold_package, "-m", "condtrack_cli", "render", str(tmp_path / "hold.h5"), str(SAMPLE),
+                    "-o", str(tmp_path / "hold.mp4"), "--contact-sheet", str(sheet))
+    assert done.returncode == 0, done.stderr
+    from condtrack_cli.render import OTHER_COLOUR
+
+    assert (cv2.imread(str(sheet)) == OTHER_COLOUR).all(axis=-1).sum() > 100  # the points, in the default colour
+    listed = run_with(hold_package, "-c", "from condtrack_cli import registry; print(*registry.tracking_methods())")
+    assert listed.stdout.split() == ["stk", "mdr", "clf", "cnlf", "auto", "hold"]  # what make bench runs
+    helped = run_with(hold_package, "-m", "condtrack_cli", "track", "--help")
+    assert "auto|hold]" in helped.stdout
+
+    # read back in this process, with the package registered the same way
+    sys.path.insert(0, str(hold_package))
+    registry.reload_entry_points()
+    try:
+        back = ct.read_tracks(tmp_path / "hold.h5")
+        assert set(back.method) == {"hold"}
+        assert registry.method_code("hold") == 4
+        held = np.broadcast_to(back.queries.xy[:, None], back.xy.shape)
+        assert np.array_equal(back.xy, held)  # hold keeps each point at its query, on every frame
+        assert np.array_equal(ct.read_tracks(tmp_path / "hold.csv").xy, np.round(held, 6))
+    finally:
+        sys.path.remove(str(hold_package))
+        registry._STAGES["filter"].pop("hold", None)
+        registry.reload_entry_points()
+        sys.modules.pop("thirdparty_hold", None)
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+    """A 160x120, 5-frame synthetic camera-motion scene with exact ground truth."""
+    from condtrack_cli.frames.synthetic import make_scene, write_scene
+
+    return write_scene(make_scene("camera_motion", seed=0, size=(160, 120), n_frames=5),
+                       tmp_path_factory.mktemp("tiny") / "scene")
+
+
+def every_stage() -> list[tuple[str, str]]:
+    return [(kind, name) for kind in registry.KINDS for name in registry.names(kind)]
+
+
+@pytest.mark.parametrize("kind, name", every_stage())
+def test_every_registered_stage_runs_on_a_tiny_scene(tmp_path, tiny_scene, kind, name):
+    """Each stage, chosen by name in the config, tracks the tiny scene to within 0.5 px (median) of the truth."""
+    config = {"filter": {"method": name}} if kind == "filter" else (
+        {} if kind == "output" else {kind: {"name": name}})
+    queries = None if kind == "detect" else tiny_scene / "queries.csv"
+    t = ct.track(str(tiny_scene), queries=queries, config=config)
+    if kind == "detect":
+        assert len(t.queries) > 0 and np.isfinite(t.xy).all()
+        return
+    truth = load_gt_csv(tiny_scene / "tracks.csv")
+    error = np.linalg.norm(t.xy - truth.gt_xy, axis=-1)[truth.known]
+    assert np.median(error) < 0.5
+    if kind == "output":
+        suffix = next(s for s, format_name in FORMATS.items() if format_name == name)
+        (t.to_csv if name == "csv" else t.to_hdf5)(tmp_path / f"out{suffix}")
+        assert np.allclose(ct.read_tracks(tmp_path / f"out{suffix}").xy, t.xy, atol=1e-6, equal_nan=True)
