@@ -18,7 +18,7 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
 
     Without a ``point_id`` column the points are numbered 0.. in file order. A
     point must lie inside the frame ([-0.5, W-0.5] x [-0.5, H-0.5], the pixel
-    convention of DESIGN.md §6) and its frame in [0, n_frames).
+    convention of docs/schema.md) and its frame in [0, n_frames).
     """
     path = Path(path)
     try:

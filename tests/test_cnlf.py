@@ -59,13 +59,23 @@ def test_particle_filter_agrees_with_kalman_on_a_linear_gaussian_problem():
         x_kf, s_kf = kalman.update(x_kf, s_kf, z, R[None], valid)
         mu = particles + u
         particles, log_w = propagate(rng, log_w, mu, np.broadcast_to(Q, mu.shape + (2,)), z, R[None], valid)
-        picks = resample(rng, log_w, settings)
+        picks, log_w = resample(rng, log_w, settings)
         particles = np.take_along_axis(particles, picks[..., None], axis=1)
     w = np.exp(log_w[0])[:, None]
     mean = (w * particles[0]).sum(axis=0)
     cov = np.einsum("n,ni,nj->ij", w[:, 0], particles[0] - mean, particles[0] - mean)
     np.testing.assert_allclose(mean, x_kf[0], atol=0.03)
     np.testing.assert_allclose(cov, s_kf[0], rtol=0.06, atol=0.01)
+
+
+def test_resample_returns_new_weights_and_leaves_its_input_alone():
+    count = 8
+    log_w = normalise(np.log(np.array([[1.0] + [1e-6] * (count - 1), [1.0] * count])))  # row 0 degenerate, row 1 uniform
+    before = log_w.copy()
+    picks, after = resample(np.random.default_rng(0), log_w, CNLFSettings(particles=count))
+    assert np.array_equal(log_w, before)
+    np.testing.assert_allclose(after, -np.log(count))  # row 0 reset to uniform, row 1 already uniform
+    assert (picks[0] == 0).all() and (picks[1] == np.arange(count)).all()
 
 
 @pytest.fixture(scope="module")

@@ -340,7 +340,7 @@ def test_align_errors():
 
 
 def write_pred_csv(path, point_id, xy, visible, cov):
-    """A condtrack CSV in the documented layout (DESIGN.md §5), one row per frame with a position."""
+    """A condtrack CSV in the documented layout (docs/schema.md), one row per frame with a position."""
     lines = ["point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method"]
     for p, f in zip(*np.nonzero(np.isfinite(xy).all(axis=-1))):
         c = cov[p, f]

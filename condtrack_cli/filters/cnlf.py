@@ -109,18 +109,20 @@ def propagate(
 
 
 def resample(rng: np.random.Generator, log_w: np.ndarray, settings: CNLFSettings) -> np.ndarray:
-    """(n, N) ancestor indices: resampled rows where the effective sample size < ess_fraction N, identity elsewhere.
+    """Ancestor indices (n, N) and the log-weights (n, N) after resampling, ``log_w`` left unchanged.
 
-    ``log_w`` (n, N) is reset to uniform in place on the resampled rows.
+    Rows whose effective sample size is below ess_fraction N are resampled and
+    their weights reset to uniform; the other rows keep identity ancestors and their weights.
     """
     n, count = log_w.shape
     picks = np.broadcast_to(np.arange(count), (n, count)).copy()
+    log_w = log_w.copy()
     weights = np.exp(log_w)
     degenerate = np.flatnonzero(1.0 / (weights**2).sum(axis=1) < settings.ess_fraction * count)
     if degenerate.size:
         picks[degenerate] = RESAMPLERS[settings.resampling](rng, weights[degenerate])
         log_w[degenerate] = -np.log(count)
-    return picks
+    return picks, log_w
 
 
 class CNLFTracker(Tracker):
@@ -192,7 +194,7 @@ class CNLFTracker(Tracker):
         Q = field.noise(x)  # (n, N, 2, 2)
         measured = self.reference.measure_in_gate(index, frame, *mixture_moments(self.log_w[index], mu, Q))
         particles, log_w = propagate(self.rng, self.log_w[index], mu, Q, measured.z, measured.R_used, measured.valid)
-        picks = resample(self.rng, log_w, self.settings)
+        picks, log_w = resample(self.rng, log_w, self.settings)
         self.particles[index] = np.take_along_axis(particles, picks[..., None], axis=1)
         self.ancestors[index] = picks
         self.log_w[index] = log_w

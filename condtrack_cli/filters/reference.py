@@ -1,6 +1,6 @@
 """What the CLF and the CNLF share: each point's reference patch, its measurement in the gate, its update.
 
-The search region must be sized before R_k is known (DESIGN.md §3): it uses
+The search region must be sized before R_k is known: it uses
 S = S_pred + R_gate, S_pred the predicted covariance of the point (CLF:
 Sigma_{k|k-1}; CNLF: the mixture's second moment) and R_gate the point's last
 finite R_k (the configured nominal one before the first), clamped to

@@ -1,4 +1,4 @@
-"""CSV and HDF5 writers (DESIGN.md §5; docs/schema.md).
+"""CSV and HDF5 writers (docs/schema.md).
 
 CSV: long format, one row per point per frame on which the point has a state,
 ordered by point then frame, columns
@@ -73,7 +73,7 @@ def _dataset(group: h5py.Group, name: str, data: np.ndarray, settings: OutputSet
 
 @register("output", "hdf5", OutputSettings, "self-describing HDF5 with measurements and metadata")
 def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
-    """Write the self-describing HDF5 file (DESIGN.md §5)."""
+    """Write the self-describing HDF5 file (docs/schema.md)."""
     q = tracks.queries
     with h5py.File(path, "w", track_order=False) as f:
         attrs = {

@@ -35,8 +35,8 @@ sigma_d^2 = 2 sigma^2; the paper's "sigma" in r/sigma is this variance.
 test of eq. 10 is then slightly lenient, i.e. equalises slightly less.)
 
 Choice of c (eq. 8). The paper defines c as the factor that makes the response
-sum to one over W(z_k): sum_W exp(-c r_k(z)) = 1 (DESIGN.md calls c open; the
-paper's text fixes it, and the paper wins). That c is unique when min r > 0
+sum to one over W(z_k): sum_W exp(-c r_k(z)) = 1 (the project's design notes left c
+open; the paper's text fixes it, and the paper wins). That c is unique when min r > 0
 (the sum decreases from n^2 at c = 0 to 0), scale-free (r -> a r gives c -> c/a),
 and acts as a temperature proportional to the residual at the minimum,
 1/c = r_min / ln(sum_W exp(-c (r - r_min))): a match degraded by deformation,
