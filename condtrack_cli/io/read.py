@@ -20,7 +20,7 @@ from condtrack_cli import SCHEMA_VERSION
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io.formats import is_hdf5, track_format
 from condtrack_cli.io.write import CSV_COLUMNS
-from condtrack_cli.registry import method_codes
+from condtrack_cli.registry import BUILTIN_METHOD_CODES, method_codes
 from condtrack_cli.types import Queries, SequenceInfo, Tracks
 
 
@@ -104,7 +104,8 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
             nan = np.full_like(xy, np.nan)
             z = f["measurements/z"][()] if "measurements" in f else nan
             R = f["measurements/R"][()] if "measurements" in f else np.full(xy.shape + (2,), np.nan)
-            names = np.array(t["method_code"].attrs["names"].split(","))
+            # the file's code table; without one, the built-in codes (docs/schema.md)
+            names = np.array(t["method_code"].attrs.get("names", ",".join(BUILTIN_METHOD_CODES)).split(","))
             file_codes = np.append(_codes_of(path, names), np.int8(-1))  # the file's code -1 (last) stays -1
             tracks = Tracks(queries, xy, t["cov"][()], t["visible"][()].astype(bool), file_codes[t["method_code"][()]], z, R)
             _check_layout(tracks)
