@@ -25,11 +25,12 @@ from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io import read as io_read
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.write import write_tracks
+from condtrack_cli.hashes import config_hash, queries_hash
 from condtrack_cli.progress import Progress
 from condtrack_cli.queries import queries_from_rows, read_queries
 
 #: File attributes of a run (beyond the sequence's) that :meth:`Tracks.to_hdf5` writes and ``read_tracks`` keeps.
-RUN_ATTRIBUTES = ("config", "method", "seed")
+RUN_ATTRIBUTES = ("config", "method", "seed", "config_hash", "queries_hash")
 
 
 @dataclass(frozen=True)
@@ -40,7 +41,7 @@ class Tracks:
     ``result`` is the pipeline's :class:`condtrack_cli.types.Tracks` (with the
     raw measurements z, R and the optional datasets); ``info`` the sequence;
     ``config`` the resolved config (None for a CSV read back: a CSV holds none);
-    ``attributes`` the run's file attributes (config YAML, method, seed).
+    ``attributes`` the run's file attributes (config YAML, method, seed, and their hashes: ``condtrack_cli.hashes``).
     """
 
     result: types.Tracks
@@ -100,6 +101,7 @@ def track_sequence(
     (detect on frame 0). ``progress_factory(total_frames)`` returns a per-frame
     callback with ``close()`` (:class:`condtrack_cli.progress.Progress`); None tracks silently.
     """
+    given = queries
     frames_stage = config.stage("frames")
     source = registry.get("frames", frames_stage.name).factory(frames_stage.settings, str(input_path))
     info = source.info
@@ -115,7 +117,8 @@ def track_sequence(
     finally:
         if progress is not None:
             progress.close()
-    attributes = {"config": config.to_yaml(), "method": config.method, "seed": seed}
+    attributes = {"config": config.to_yaml(), "method": config.method, "seed": seed,
+                  "config_hash": config_hash(config), "queries_hash": queries_hash(given)}
     return Tracks(result, info, config, attributes), source
 
 

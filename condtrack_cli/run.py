@@ -1,8 +1,7 @@
-"""One tracking job (input -> output file), and a batch of them, without any click.
+"""One tracking job (input -> output file), without any click.
 
-``track_input`` is what ``condtrack track`` does for one input; ``track_batch``
-runs it over many inputs (in parallel processes with ``jobs`` > 1), reports each
-failure and goes on.
+``track_input`` is what ``condtrack track`` does for one input; a batch of them
+is ``condtrack_cli.batch``.
 """
 
 from __future__ import annotations
@@ -10,7 +9,6 @@ from __future__ import annotations
 import os
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,11 +21,12 @@ from condtrack_cli.io.write import csv_text, write_tracks
 
 @dataclass(frozen=True)
 class RunSummary:
-    """What one job did: points, share of visible rows, seconds per frame; or its error."""
+    """What one job did: points, frames, share of visible rows, seconds per frame; or its error."""
 
     input: str
     output: str | None
     n_points: int = 0
+    n_frames: int = 0
     visible_share: float = 0.0
     seconds_per_frame: float = 0.0
     error: str | None = None
@@ -77,7 +76,7 @@ def track_input(
         render_overlay(tracks, source, overlay_path, info.fps)
     rows = tracks.has_state
     return RunSummary(
-        input=input_path, output=output_path, n_points=len(tracks.queries),
+        input=input_path, output=output_path, n_points=len(tracks.queries), n_frames=info.n_frames,
         visible_share=float(tracks.visible[rows].mean()) if rows.any() else 0.0,
         seconds_per_frame=seconds / max(info.n_frames, 1),
     )
@@ -87,36 +86,3 @@ def check_overlay_path(path: Path) -> None:
     """Refuse an overlay path whose folder does not exist or cannot be written, before any work."""
     if not path.parent.is_dir() or not os.access(path.parent, os.W_OK | os.X_OK):
         raise CondtrackError(f"{path}: the overlay folder '{path.parent}' does not exist or is not writable")
-
-
-def batch_outputs(inputs: list[str], out_dir: Path, suffix: str) -> list[str]:
-    """Predictable output names: ``out_dir/<input name without extension><suffix>``; refuse collisions."""
-    names = [Path(p.rstrip("/")).stem or Path(p.rstrip("/")).name for p in inputs]
-    seen: dict[str, str] = {}
-    for name, path in zip(names, inputs):
-        if name in seen:
-            raise CondtrackError(f"inputs '{seen[name]}' and '{path}' would both write '{name}{suffix}' in {out_dir}")
-        seen[name] = path
-    return [str(out_dir / f"{name}{suffix}") for name in names]
-
-
-def _batch_job(args: tuple) -> RunSummary:
-    input_path, config, queries_path, output_path, seed = args
-    try:
-        return track_input(input_path, config, queries_path, output_path, seed)
-    except CondtrackError as error:
-        return RunSummary(input=input_path, output=None, error=str(error))
-
-
-def track_batch(
-    inputs: list[str], config: Config, queries_path: str | None, out_dir: Path, suffix: str, seed: int, jobs: int,
-) -> list[RunSummary]:
-    """Track every input into ``out_dir``; one summary per input, in input order."""
-    if not out_dir.is_dir():
-        raise CondtrackError(f"--out-dir '{out_dir}' does not exist")
-    outputs = batch_outputs(inputs, out_dir, suffix)
-    work = [(i, config, queries_path, o, seed) for i, o in zip(inputs, outputs)]
-    if jobs <= 1:
-        return [_batch_job(job) for job in work]
-    with ProcessPoolExecutor(max_workers=jobs) as pool:
-        return list(pool.map(_batch_job, work))

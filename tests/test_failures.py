@@ -112,7 +112,7 @@ def test_batch_with_one_broken_input(tmp_path):
     out_dir.mkdir()
     result = run_cli("track", str(good), "--from-list", str(listing), "--out-dir", str(out_dir), "-j", "2", "-q")
     assert result.returncode == 1
-    assert sorted(p.name for p in out_dir.iterdir()) == ["frames.h5", "occlusion.h5"]
+    assert sorted(p.name for p in out_dir.glob("*.h5")) == ["frames.h5", "occlusion.h5"]
     assert "failed" in result.stderr and "not a readable image" in result.stderr
 
 

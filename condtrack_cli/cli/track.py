@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from condtrack_cli import registry
+from condtrack_cli.batch_command import batch_options, run_batch, single_run_threads
 from condtrack_cli.config import Config, check_method, load_config
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.progress import Progress
@@ -54,19 +55,21 @@ def _configure_logging(quiet: bool) -> None:
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override one config value, e.g. motion.levels=3 (repeatable).")
 @click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
-@click.option("--out-dir", type=click.Path(file_okay=False), help="Batch: folder of the outputs, one <input name>.<format> each.")
+@click.option("--out-dir", type=click.Path(file_okay=False), help="Batch: folder of the outputs (created if missing), one <input name>.<format> each, and manifest.jsonl.")
 @click.option("--format", "batch_format", type=click.Choice(["h5", "csv"]), default="h5", show_default=True, help="Batch: output format.")
 @click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True, help="Batch: inputs processed in parallel.")
+@batch_options
 @click.option("-q", "--quiet", is_flag=True, help="No progress or summary on stderr.")
 def track(inputs, config_path, queries_path, method, output_path, overlay_path, seed, overrides, list_path, out_dir,
-          batch_format, jobs, quiet) -> None:
+          batch_format, jobs, quiet, threads, **batch) -> None:
     """Track points through INPUT, a folder of frames or a video file.
 
     Several INPUTs (or --from-list) make a batch: one output per input in
     --out-dir, a failing input is reported and the others go on, a final table
     gives each input's status, and the exit code is 1 if any input failed.
+    OUT_DIR/manifest.jsonl gets one line per input as it ends.
     """
-    from condtrack_cli.run import track_batch, track_input
+    from condtrack_cli.run import track_input
 
     _configure_logging(quiet)
     inputs = list(inputs) + (_read_list(list_path) if list_path else [])
@@ -74,6 +77,7 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         raise CondtrackError("no INPUT given (a frame folder or a video file, or --from-list FILE)")
     config: Config = load_config(config_path, list(overrides), method)
     if len(inputs) == 1 and out_dir is None:
+        single_run_threads(threads, batch)
         progress = None if quiet else Progress
         summary = track_input(inputs[0], config, queries_path, output_path, seed, progress, overlay_path)
         if not quiet:
@@ -83,10 +87,7 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         raise CondtrackError("-o and --overlay take one input; a batch writes into --out-dir")
     if out_dir is None:
         raise CondtrackError("several inputs need --out-dir")
-    summaries = track_batch(inputs, config, queries_path, Path(out_dir), f".{batch_format}", seed, jobs)
-    _print_batch_table(summaries, config.method)
-    if any(s.error for s in summaries):
-        sys.exit(1)
+    run_batch(inputs, config, queries_path, out_dir, batch_format, seed, jobs, quiet, threads=threads, **batch)
 
 
 def _read_list(path: str) -> list[str]:
@@ -95,19 +96,3 @@ def _read_list(path: str) -> list[str]:
     except OSError as error:
         raise CondtrackError(f"{path}: cannot read the input list ({error.strerror})") from None
     return [line.strip() for line in lines if line.strip() and not line.lstrip().startswith("#")]
-
-
-def _print_batch_table(summaries, method: str) -> None:
-    """The batch's final table, on stderr (stdout stays clean)."""
-    from rich.console import Console
-    from rich.table import Table
-
-    table = Table(title=f"condtrack batch ({method})")
-    for column in ("input", "status", "points", "visible", "s/frame", "output or error"):
-        table.add_column(column)
-    for s in summaries:
-        if s.error:
-            table.add_row(s.input, "failed", "", "", "", s.error)
-        else:
-            table.add_row(s.input, "ok", str(s.n_points), f"{s.visible_share:.1%}", f"{s.seconds_per_frame:.3f}", s.output)
-    Console(stderr=True, width=160).print(table)

@@ -12,6 +12,8 @@ for those, the queries are each track's first observation, over tracks with at
 least 3 observations, at most ``--max-points`` of them (every k-th track, k
 the smallest stride that fits) to bound the run time.
 
+``--batch`` prints only the batch throughput table (``batch_table``).
+
 ``--support SEQUENCE`` prints instead the dominant model's one-step prediction
 error by neighbourhood support (the measurement behind ``auto``'s thresholds).
 """
@@ -153,6 +155,50 @@ def speed_table(work: Path, n_points: int = 500, n_frames: int = 60, size: tuple
     return lines
 
 
+def batch_table(work: Path, n_clips: int = 8, n_frames: int = 20, size: tuple[int, int] = (320, 240),
+                method: str = "clf") -> list[str]:
+    """Markdown rows: batch throughput (clips per minute) of ``track --out-dir -j J`` for J = 1, 2, 4, ... up to the cores.
+
+    ``n_clips`` synthetic camera_motion clips (seeds 0..n_clips-1) with detected
+    points, one whole ``condtrack track`` process per J (start-up and the
+    workers' start included). Efficiency per core: throughput(J) / (J x
+    throughput(1)); 1.0 is linear scaling. CPU seconds (user + system, all the
+    run's processes) tell the work done from the wait for a busy machine.
+    """
+    import resource
+
+    from condtrack_cli.frames.synthetic import make_scene, write_scene
+    from condtrack_cli.threads import cores
+
+    clips = [str(write_scene(make_scene("camera_motion", seed=i, size=size, n_frames=n_frames), work / "batch" / f"clip{i:03d}"))
+             for i in range(n_clips)]
+    available = cores()
+    jobs = sorted({j for j in (1, 2, 4, 8, 16, 32, 64) if j <= available} | {available})
+    lines = [
+        f"Batch: {n_clips} clips of {n_frames} frames at {size[0]}x{size[1]} (synthetic camera_motion, detected points), "
+        f"`condtrack track CLIPS --out-dir DIR -m {method} -j J`, whole-process wall time; {available} cores.",
+        "",
+        "| -j | wall (s) | clips / min | efficiency per core | CPU (s) |",
+        "|---|---|---|---|---|",
+    ]
+    single = None
+    for count in jobs:
+        out_dir = work / "batch" / f"out-j{count}"
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        seconds, _, code, message = run_track([*clips, "-m", method, "--out-dir", str(out_dir), "-j", str(count)])
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+        if code != 0:
+            lines.append(f"| {count} | failed: {message} | | | |")
+            continue
+        rate = n_clips / seconds * 60.0
+        single = rate if count == 1 else single
+        efficiency = f"{rate / (count * single):.2f}" if single else "n/a"
+        lines.append(f"| {count} | {seconds:.1f} | {rate:.1f} | {efficiency} | {cpu:.1f} |")
+        print(lines[-1], file=sys.stderr)
+    return lines
+
+
 #: Bins of the neighbourhood support for ``support_table``.
 SUPPORT_BINS = (0.0, 0.4, 0.6, 0.8, 1.0001)
 
@@ -218,14 +264,20 @@ def main() -> None:
                         help="folder for the queries and track files (emptied first; kept for `condtrack eval`)")
     parser.add_argument("--support", type=Path, metavar="SEQUENCE",
                         help="only print the dominant model's one-step error by support on SEQUENCE (with tracks.csv)")
+    parser.add_argument("--batch", action="store_true", help="only print the batch throughput table")
     args = parser.parse_args()
     if args.support:
         print("\n".join(support_table(args.support)))
+        return
+    if args.batch:
+        shutil.rmtree(args.work / "batch", ignore_errors=True)
+        print("\n".join(batch_table(args.work)))
         return
     shutil.rmtree(args.work, ignore_errors=True)
     args.work.mkdir(parents=True)
     accuracy = accuracy_table(args.max_points, args.work)
     speed = speed_table(args.work)
+    batch = batch_table(args.work)
     header = [
         "# condtrack benchmark",
         "",
@@ -242,7 +294,7 @@ def main() -> None:
         "`condtrack eval bench/out/<file>.h5 <ground truth>` gives the row's numbers.",
         "",
     ]
-    text = "\n".join(header + accuracy + ["", "## Speed", ""] + speed) + "\n"
+    text = "\n".join(header + accuracy + ["", "## Speed", ""] + speed + ["", "## Many clips", ""] + batch) + "\n"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     print(f"bench: wrote {args.out}", file=sys.stderr)

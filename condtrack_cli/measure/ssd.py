@@ -65,6 +65,7 @@ from scipy import fft, ndimage, special, stats
 
 from condtrack_cli.config import StageSettings
 from condtrack_cli.registry import register
+from condtrack_cli.threads import fft_workers
 
 #: Points per FFT batch: bounds the temporary arrays (about 70 kB per point at the default sizes).
 _CHUNK = 512
@@ -374,7 +375,7 @@ def _half_sizes(gate_cov: np.ndarray, settings: SSDSettings) -> np.ndarray:
 
 def _spectrum(values: np.ndarray, length: int) -> np.ndarray:
     """(P, length, length // 2 + 1) 2-D real FFT of (P, a, b) arrays zero-padded to length x length."""
-    return fft.rfft2(values, s=(length, length), workers=-1)
+    return fft.rfft2(values, s=(length, length), workers=fft_workers())
 
 
 def _ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, reach: int) -> np.ndarray:
@@ -406,7 +407,7 @@ def _ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, 
         spectrum = _spectrum(patch * patch, length)
         spectrum *= box  # sum_y I(z + y)^2
         spectrum += _spectrum(patch, length) * _spectrum(-2.0 * tmpl[:, ::-1, ::-1], length)  # -2 sum_y T I(z + y)
-        window = fft.irfft2(spectrum, s=(length, length), workers=-1)[:, t - 1 : t - 1 + g, t - 1 : t - 1 + g]
+        window = fft.irfft2(spectrum, s=(length, length), workers=fft_workers())[:, t - 1 : t - 1 + g, t - 1 : t - 1 + g]
         out[start:stop] = np.maximum(window + (tmpl * tmpl).sum(axis=(1, 2))[:, None, None], 0.0)  # eq. (6)
     return out
 

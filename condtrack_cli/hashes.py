@@ -1,0 +1,37 @@
+"""What made an output, as hashes stored in it (HDF5 attributes) and in a batch's manifest.
+
+``config_hash``: sha256 (hex) of the resolved configuration's canonical YAML
+(``Config.to_yaml()``, UTF-8): every key with its value, defaults included, in
+a fixed order, so the same effective settings (from a file, ``--set`` or
+``-m``) hash alike and any changed value changes the hash.
+
+``queries_hash``: sha256 (hex) of the queries given: a file's bytes, or an
+array's float64 bytes (C order); "" when the points are detected.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+
+from condtrack_cli.config import Config
+from condtrack_cli.errors import CondtrackError
+
+
+def config_hash(config: Config) -> str:
+    """sha256 (hex) of ``config.to_yaml()`` encoded as UTF-8."""
+    return hashlib.sha256(config.to_yaml().encode("utf-8")).hexdigest()
+
+
+def queries_hash(queries: str | Path | np.ndarray | None) -> str:
+    """sha256 (hex) of a queries file's bytes or of an (N, 3) array's float64 bytes; "" for None."""
+    if queries is None:
+        return ""
+    if not isinstance(queries, (str, Path)):
+        return hashlib.sha256(np.ascontiguousarray(queries, dtype=np.float64).tobytes()).hexdigest()
+    try:
+        return hashlib.sha256(Path(queries).read_bytes()).hexdigest()
+    except OSError as error:
+        raise CondtrackError(f"{queries}: cannot read ({error.strerror})") from None

@@ -1,0 +1,86 @@
+"""How many threads one clip uses: OpenCV's pool, scipy.fft's workers and the BLAS pools.
+
+One clip alone may use every core (the default: OpenCV's and the BLAS
+libraries' own choice, ``scipy.fft`` with ``workers=-1``). A batch of ``-j N``
+gives each job ``threads_per_job`` threads so that N jobs never ask for more
+threads than the machine has cores.
+
+The BLAS and OpenMP pools read their size once, when numpy is imported: a
+process started for a batch job gets :func:`blas_environment` in its
+environment before it imports anything; OpenCV and the FFT workers are set at
+run time by :func:`use_threads`.
+"""
+
+from __future__ import annotations
+
+import os
+
+#: Environment variable giving the default of ``--threads``.
+THREADS_ENV = "CONDTRACK_THREADS"
+
+#: Variables read by the BLAS / OpenMP libraries numpy and scipy may load, at import time.
+BLAS_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
+
+_fft_workers = -1  # scipy.fft's ``workers``: -1 = every core
+
+
+def cores() -> int:
+    """Cores this process may run on (its CPU affinity, not the machine's count)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def threads_from_environment() -> int | None:
+    """``CONDTRACK_THREADS`` as a positive int, None when unset; ValueError when it is not one."""
+    text = os.environ.get(THREADS_ENV, "").strip()
+    if not text:
+        return None
+    if not text.isdigit() or int(text) < 1:
+        raise ValueError(f"{THREADS_ENV}={text!r}: expected a positive integer")
+    return int(text)
+
+
+def threads_per_job(requested: int | None, jobs: int, available: int | None = None) -> tuple[int | None, str | None]:
+    """(threads for each of ``jobs`` parallel jobs, a warning or None).
+
+    ``requested`` None: a single job uses every core (None = the libraries'
+    default) and ``jobs`` > 1 use one thread each. A request is capped at
+    ``available // jobs`` (at least 1) so the jobs never oversubscribe the
+    ``available`` cores; the warning says so.
+    """
+    available = available or cores()
+    if requested is None:
+        return (None if jobs == 1 else 1), None
+    fair = max(1, available // jobs)
+    if jobs > 1 and requested > fair:
+        return fair, (f"{requested} threads x {jobs} jobs exceeds the {available} cores: "
+                      f"using {fair} thread{'s' if fair > 1 else ''} per job")
+    return requested, None
+
+
+def blas_environment(threads: int | None) -> dict[str, str]:
+    """Environment entries that size the BLAS / OpenMP pools of a process started next (empty for None)."""
+    return {} if threads is None else {name: str(threads) for name in BLAS_VARIABLES}
+
+
+def use_threads(threads: int | None) -> None:
+    """Size OpenCV's thread pool and scipy.fft's workers for this process (None: every core)."""
+    import cv2
+
+    global _fft_workers
+    cv2.setNumThreads(-1 if threads is None else threads)  # -1: OpenCV's default, every core
+    _fft_workers = -1 if threads is None else threads
+
+
+def fft_workers() -> int:
+    """The ``workers`` argument of scipy.fft calls (-1: every core)."""
+    return _fft_workers
+
+
+def threads_in_use() -> dict[str, int | str]:
+    """What this process uses now: OpenCV's thread count, scipy.fft's workers, OMP_NUM_THREADS (reported per clip)."""
+    import cv2
+
+    return {"opencv": cv2.getNumThreads(), "fft": _fft_workers, "omp": os.environ.get("OMP_NUM_THREADS", "")}

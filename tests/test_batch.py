@@ -1,0 +1,250 @@
+"""Batches: output names, manifest, resume, shards, Dask, interrupts and threads per job.
+
+The clips are small synthetic scenes laid out as a dataset is (``clipNNN/frames``),
+tracked with ``stk`` (the fastest method) unless a test needs slower clips.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from condtrack_cli.batch import MANIFEST, output_names, parse_shard, shard
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.frames.synthetic import make_scene, write_scene
+
+MANIFEST_FIELDS = {"input", "output", "status", "error", "seconds", "frames", "points", "method", "config_hash",
+                   "version", "seed"}
+
+
+def run_cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
+    """Run the real console entry point in a child process."""
+    return subprocess.run(
+        [sys.executable, "-c", "from condtrack_cli.cli import main; main()", *args],
+        capture_output=True, text=True, timeout=300, env=env,
+    )
+
+
+def make_clips(root: Path, count: int, n_frames: int | list[int] = 5) -> list[str]:
+    """``count`` folders root/clipNNN/frames of the 160 x 120 camera_motion scene (seed NNN); their paths."""
+    clips = []
+    for index in range(count):
+        folder = root / f"clip{index:03d}" / "frames"
+        length = n_frames[index] if isinstance(n_frames, list) else n_frames
+        write_scene(make_scene("camera_motion", seed=index, size=(160, 120), n_frames=length), folder)
+        clips.append(str(folder))
+    return clips
+
+
+def manifest(out_dir: Path) -> list[dict]:
+    return [json.loads(line) for line in (out_dir / MANIFEST).read_text().splitlines()]
+
+
+def outputs(out_dir: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted(out_dir.glob("*.h5"))}
+
+
+@pytest.fixture(scope="module")
+def clips(tmp_path_factory) -> list[str]:
+    return make_clips(tmp_path_factory.mktemp("data"), 4)
+
+
+def test_same_named_inputs_get_the_shortest_distinguishing_tail():
+    assert output_names(["/d/clip001/frames", "/d/clip002/frames", "/e/other.mp4"]) == [
+        "clip001_frames", "clip002_frames", "other"]
+    # only the inputs that share a name grow; a deeper clash grows further
+    assert output_names(["/a/x/frames", "/b/x/frames", "/c/y/frames", "/c/solo"]) == [
+        "a_x_frames", "b_x_frames", "y_frames", "solo"]
+    assert output_names(["/v/clip.mp4", "/w/clip.avi"]) == ["v_clip", "w_clip"]
+    with pytest.raises(CondtrackError, match="given twice"):
+        output_names(["/d/a/frames", "/d/a/./frames"])
+    with pytest.raises(CondtrackError, match="would both write 'v_clip'"):
+        output_names(["/v/clip.mp4", "/v/clip.avi"])
+
+
+def test_shards_cover_every_input_once():
+    items = list(range(11))
+    parts = [shard(items, i, 3) for i in range(3)]
+    assert sorted(sum(parts, [])) == items and [len(p) for p in parts] == [4, 4, 3]
+    assert parse_shard("2/3") == (2, 3)
+    for bad in ("3/3", "-1/3", "1", "a/b", "0/0"):
+        with pytest.raises(CondtrackError, match="--shard"):
+            parse_shard(bad)
+
+
+def test_batch_creates_out_dir_names_same_named_inputs_and_writes_the_manifest(clips, tmp_path):
+    out_dir = tmp_path / "new" / "tracks"
+    broken = tmp_path / "broken" / "frames"
+    broken.mkdir(parents=True)
+    (broken / "0.png").write_bytes(b"not a png")
+    result = run_cli("track", *clips[:2], str(broken), "-m", "stk", "--seed", "3", "--out-dir", str(out_dir), "-j", "2")
+    assert result.returncode == 1, result.stderr
+    assert sorted(p.name for p in out_dir.iterdir()) == ["clip000_frames.h5", "clip001_frames.h5", MANIFEST]
+    records = manifest(out_dir)
+    assert sorted(r["input"] for r in records) == sorted([*clips[:2], str(broken)])
+    for record in records:
+        assert MANIFEST_FIELDS <= set(record), record
+        assert (record["method"], record["seed"], record["version"]) == ("stk", 3, "0.1.0")
+        assert len(record["config_hash"]) == 64
+    by_input = {r["input"]: r for r in records}
+    assert by_input[str(broken)]["status"] == "failed" and "not a readable image" in by_input[str(broken)]["error"]
+    ok = by_input[clips[0]]
+    assert ok["status"] == "ok" and ok["error"] is None and ok["frames"] == 5 and ok["points"] > 0
+    assert ok["output"] == str(out_dir / "clip000_frames.h5") and ok["seconds"] > 0
+    # progress over clips, then the table
+    assert "[3/3]" in result.stderr and "1 failed so far" in result.stderr and "condtrack batch" in result.stderr
+    import h5py
+
+    with h5py.File(out_dir / "clip000_frames.h5") as f:
+        assert f.attrs["config_hash"] == ok["config_hash"] and f.attrs["queries_hash"] == ""
+    # resume: the HDF5 outputs made with these settings are skipped, the failed input is tried again
+    again = run_cli("track", *clips[:2], str(broken), "-m", "stk", "--seed", "3", "--out-dir", str(out_dir),
+                    "--skip-existing", "-q")
+    assert again.returncode == 1 and again.stderr.count("failed: ") == 1
+    status = {r["input"]: r["status"] for r in manifest(out_dir)[3:]}
+    assert status == {clips[0]: "skipped", clips[1]: "skipped", str(broken): "failed"}
+
+
+def test_config_hash_follows_the_resolved_config():
+    from condtrack_cli.config import load_config
+    from condtrack_cli.hashes import config_hash
+
+    same = config_hash(load_config(None, [], "stk")) == config_hash(load_config(None, ["filter.method=stk"], None))
+    assert same
+    assert config_hash(load_config(None, [], "stk")) != config_hash(load_config(None, ["filter.stk.win_size=31"], "stk"))
+
+
+def test_killed_batch_resumes_with_skip_existing_and_does_each_input_once(tmp_path):
+    clips = make_clips(tmp_path / "data", 4, n_frames=8)
+    out_dir = tmp_path / "tracks"
+    args = ["track", *clips, "-m", "cnlf", "--out-dir", str(out_dir), "--format", "csv", "--skip-existing"]
+    process = subprocess.Popen([sys.executable, "-c", "from condtrack_cli.cli import main; main()", *args],
+                               stderr=subprocess.PIPE, text=True)
+    while "[1/4]" not in process.stderr.readline():  # the first input is done
+        pass
+    process.send_signal(signal.SIGTERM)
+    _, stderr = process.communicate(timeout=120)
+    assert process.returncode == 143, stderr
+    first = manifest(out_dir)
+    done = {r["input"] for r in first if r["status"] == "ok"}
+    assert 1 <= len(done) < 4 and not list(out_dir.glob("*.part")) and not list(out_dir.glob(".*"))
+    result = run_cli(*args, "-q")
+    assert result.returncode == 0, result.stderr
+    second = manifest(out_dir)[len(first):]
+    assert {r["input"] for r in second if r["status"] == "skipped"} == done
+    ok = [r["input"] for r in first + second if r["status"] == "ok"]
+    assert sorted(ok) == sorted(clips)  # every input done exactly once over both runs
+    assert len(list(out_dir.glob("*.csv"))) == 4
+    # another seed is another result: not skipped
+    result = run_cli(*args, "--seed", "1", "--shard", "0/4", "-q")
+    assert result.returncode == 0
+    assert [r["status"] for r in manifest(out_dir)[len(first) + len(second):]] == ["ok"]
+
+
+def test_two_shards_cover_the_inputs_once_with_the_names_of_the_whole_list(clips, tmp_path):
+    out_dir = tmp_path / "tracks"
+    for index in range(2):
+        result = run_cli("track", *clips, "-m", "stk", "--out-dir", str(out_dir), "--shard", f"{index}/2", "-q")
+        assert result.returncode == 0, result.stderr
+    records = manifest(out_dir)
+    assert sorted(r["input"] for r in records) == sorted(clips)
+    assert sorted(outputs(out_dir)) == [f"clip{i:03d}_frames.h5" for i in range(4)]
+
+
+def _batch_signal_run(clips: list[str], out_dir: Path, sig: int) -> tuple[int, str, set, set, list[int]]:
+    """Run a -j 2 batch, send ``sig`` once the first input is done; (exit code, stderr, outputs at the signal, after, worker pids)."""
+    process = subprocess.Popen(
+        [sys.executable, "-c", "from condtrack_cli.cli import main; main()", "track", *clips, "-m", "cnlf",
+         "--out-dir", str(out_dir), "-j", "2"],
+        stderr=subprocess.PIPE, text=True,
+    )
+    while "[1/" not in process.stderr.readline():
+        pass
+    workers = children(process.pid)
+    at_signal = {p.name for p in out_dir.glob("*.h5")}
+    process.send_signal(sig)
+    _, stderr = process.communicate(timeout=120)
+    time.sleep(1.0)  # a worker left running would publish its output meanwhile
+    return process.returncode, stderr, at_signal, {p.name for p in out_dir.glob("*.h5")}, workers
+
+
+def children(pid: int) -> list[int]:
+    """Pids of the live processes whose parent is ``pid`` (read from /proc)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+            except OSError:
+                continue
+            if int(fields[1]) == pid:
+                found.append(int(entry.name))
+    return found
+
+
+def alive(pid: int) -> bool:
+    """True while ``pid`` runs (a zombie, dead but not yet reaped, is not alive)."""
+    try:
+        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
+    except OSError:
+        return False
+    return state != "Z"
+
+
+@pytest.mark.parametrize("sig, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_interrupted_batch_stops_its_workers_and_publishes_nothing_after(tmp_path, sig, code):
+    clips = make_clips(tmp_path / "data", 6, n_frames=[3] + [25] * 5)  # the first ends long before the second
+    out_dir = tmp_path / "tracks"
+    returncode, stderr, at_signal, after, workers = _batch_signal_run(clips, out_dir, sig)
+    assert returncode == code, stderr
+    assert after == at_signal and len(after) < 6  # queued inputs were cancelled, running ones not published
+    assert not list(out_dir.glob("*.part")) and not list(out_dir.glob(".*"))
+    assert len(workers) >= 2
+    deadline = time.monotonic() + 10
+    while any(alive(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert not [pid for pid in workers if alive(pid)]
+    assert "Traceback" not in stderr
+
+
+def test_a_batch_of_two_jobs_uses_one_thread_per_job(clips, tmp_path):
+    out_dir = tmp_path / "tracks"
+    result = run_cli("track", *clips[:2], "-m", "clf", "--out-dir", str(out_dir), "-j", "2", "-q")
+    assert result.returncode == 0, result.stderr
+    for record in manifest(out_dir):
+        assert record["threads"] == {"opencv": 1, "fft": 1, "omp": "1"}, record
+    # one input alone may use every core
+    env = {k: v for k, v in os.environ.items() if k not in ("CONDTRACK_THREADS", "OMP_NUM_THREADS")}
+    result = run_cli("track", clips[0], "-m", "clf", "--out-dir", str(tmp_path / "one"), "-q", env=env)
+    assert result.returncode == 0, result.stderr
+    (record,) = manifest(tmp_path / "one")
+    assert record["threads"]["fft"] == -1 and record["threads"]["omp"] == ""
+    # the environment default, capped so the jobs do not oversubscribe the cores
+    cores = len(os.sched_getaffinity(0))
+    result = run_cli("track", *clips[:2], "-m", "stk", "--out-dir", str(tmp_path / "env"), "-j", "2",
+                     env={**env, "CONDTRACK_THREADS": str(cores)})
+    assert result.returncode == 0, result.stderr
+    per_job = max(1, cores // 2)
+    for record in manifest(tmp_path / "env"):
+        assert record["threads"]["fft"] == per_job and record["threads"]["omp"] == str(per_job)
+    assert (f"using {per_job} thread" in result.stderr) == (cores > per_job)
+
+
+def test_dask_run_writes_the_same_bytes_as_the_local_run(clips, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    local, remote = tmp_path / "local", tmp_path / "dask"
+    assert run_cli("track", *clips, "-m", "clf", "--out-dir", str(local), "-j", "2", "-q").returncode == 0
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp",
+                                  dashboard_address=None) as cluster:
+        result = run_cli("track", *clips, "-m", "clf", "--out-dir", str(remote), "--scheduler", cluster.scheduler_address)
+    assert result.returncode == 0, result.stderr
+    assert "[4/4]" in result.stderr
+    assert outputs(local) == outputs(remote) and len(outputs(local)) == 4
+    assert sorted(r["input"] for r in manifest(remote)) == sorted(clips)
