@@ -165,8 +165,11 @@ def _batch_signal_run(clips: list[str], out_dir: Path, sig: int) -> tuple[int, s
          "--out-dir", str(out_dir), "-j", "2"],
         stderr=subprocess.PIPE, text=True,
     )
-    while "[1/" not in process.stderr.readline():
-        pass
+    for line in process.stderr:  # until the first input is reported done
+        if "[1/" in line:
+            break
+    else:
+        pytest.fail(f"the batch ended before its first input was done (exit {process.wait()})")
     workers = children(process.pid)
     at_signal = {p.name for p in out_dir.glob("*.h5")}
     process.send_signal(sig)
