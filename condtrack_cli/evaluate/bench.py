@@ -135,7 +135,7 @@ def calibration_table(max_points: int, work: Path) -> list[str]:
     ]
     for name, _, _, gt_path in sequences(max_points, work):
         truth = load_gt_csv(gt_path)
-        for method in METHODS:
+        for method in registry.tracking_methods():
             out = work / f"{name.replace('/', '_')}.{method}.h5"
             if not out.is_file():
                 continue
