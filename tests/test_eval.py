@@ -23,7 +23,7 @@ from condtrack_cli.evaluate import (
     tapvid_to_pixels,
 )
 from condtrack_cli.cli.eval import eval_command
-from condtrack_cli.evaluate.metrics import CHI2_2DOF
+from condtrack_cli.evaluate.metrics import chi2_2dof
 from condtrack_cli.types import Queries, Tracks
 
 NAN, INF = np.nan, np.inf
@@ -55,7 +55,11 @@ EXPECTED = {
         "delta_avg": 11 / 15,
         # TP/(3 + FP): x=1: 0/(3+3); x=2: 1/(3+2); x>=4: 2/(3+1)
         "jaccard_1": 0.0, "jaccard_2": 0.2, "jaccard_4": 0.5, "jaccard_8": 0.5, "jaccard_16": 0.5, "AJ": 0.34,
-        "OA": 2 / 4, "median_err": 1.5, "cov95": 2 / 3, "n_points": 2, "n_frames": 4,
+        "OA": 2 / 4, "median_err": 1.5,
+        # counted ellipses: p0 f2 (m2 = 2.25 under I), p0 f3 (m2 = 100 under 0.01 I), p1 f3 (infinite: inside);
+        # chi2 quantiles 1.386 (50%), 4.605 (90%), 5.991 (95%), 9.210 (99%)
+        "cov50": 1 / 3, "cov90": 2 / 3, "cov95": 2 / 3, "cov99": 2 / 3, "nees": (2.25 + 100) / 2, "cov_finite": 2 / 3,
+        "n_points": 2, "n_frames": 4,
     },
     "strided": {
         # scored: p0 f1..f3, p1 f0 and f3; GT-visible scored distances 1.5, 1.0, (none), 3.0
@@ -63,7 +67,10 @@ EXPECTED = {
         "delta_avg": 0.55,
         # TP/(4 + FP): x=1: 0/(4+3); x=2: 1/(4+2); x>=4: 2/(4+1)
         "jaccard_1": 0.0, "jaccard_2": 1 / 6, "jaccard_4": 0.4, "jaccard_8": 0.4, "jaccard_16": 0.4, "AJ": 41 / 150,
-        "OA": 2 / 5, "median_err": 2.25, "cov95": 2 / 3, "n_points": 2, "n_frames": 4,
+        "OA": 2 / 5, "median_err": 2.25,
+        # p1 f0 has no prediction: not counted, and not finite (2 finite of 4 GT-visible scored rows)
+        "cov50": 1 / 3, "cov90": 2 / 3, "cov95": 2 / 3, "cov99": 2 / 3, "nees": (2.25 + 100) / 2, "cov_finite": 0.5,
+        "n_points": 2, "n_frames": 4,
     },
 }
 
@@ -115,7 +122,7 @@ def test_distance_on_threshold_is_not_within():
     visible = np.ones((1, 4), bool)
     result = tapvid_metrics(pred, visible, None, gt, visible, visible, np.array([0]), "first")
     assert [result[f"pts_within_{x}"] for x in (1, 2, 4, 8, 16)] == pytest.approx([0, 0, 1 / 3, 2 / 3, 2 / 3])
-    assert result["cov95"] is None
+    assert all(result[key] is None for key in ("cov50", "cov90", "cov95", "cov99", "nees", "cov_finite"))
 
 
 def test_all_visible_gt_leaves_visibility_metrics_null():
@@ -155,12 +162,16 @@ def test_coverage_inside():
     np.testing.assert_array_equal(counted, [1, 1, 1, 1, 0, 0, 0, 0])
     np.testing.assert_array_equal(inside, [1, 0, 1, 1, 0, 0, 0, 0])
     m2 = [e @ np.linalg.solve(correlated, e) for e in error[:2]]
-    assert m2 == pytest.approx([8 / 3, 18]) and m2[0] <= CHI2_2DOF < m2[1]
+    assert m2 == pytest.approx([8 / 3, 18]) and m2[0] <= chi2_2dof(0.95) < m2[1]
 
 
-def test_chi2_quantile():
-    # 1 - exp(-q / 2) = 0.95
-    assert 1 - np.exp(-CHI2_2DOF / 2) == pytest.approx(0.95, abs=1e-15)
+@pytest.mark.parametrize("level", [0.5, 0.9, 0.95, 0.99])
+def test_chi2_quantile(level):
+    # 1 - exp(-q / 2) = p, and scipy agrees
+    from scipy import stats
+
+    assert 1 - np.exp(-chi2_2dof(level) / 2) == pytest.approx(level, abs=1e-15)
+    assert chi2_2dof(level) == pytest.approx(stats.chi2.ppf(level, 2), rel=1e-12)
 
 
 def test_unknown_mode_refused():
@@ -442,3 +453,44 @@ def test_cli_hdf5_prediction(files, tmp_path):
     result = CliRunner().invoke(eval_command, [str(path), str(gt), "--json", "--query-mode", "strided"])
     assert result.exit_code == 0, result.output
     assert json.loads(result.stdout) == pytest.approx(EXPECTED["strided"], abs=1e-12)
+
+
+def test_calibrated_gaussian_errors_give_nominal_coverage_and_nees():
+    # errors drawn from their own (correlated, varying) covariance: coverage p at every level, NEES 2
+    rng = np.random.default_rng(3)
+    n = 20000
+    scale = rng.uniform(0.2, 5.0, n)
+    cov = scale[:, None, None] * np.array([[2.0, 0.8], [0.8, 1.0]])
+    error = np.einsum("nij,nj->ni", np.linalg.cholesky(cov), rng.standard_normal((n, 2)))
+    gt = np.zeros((1, n + 1, 2))
+    pred = np.concatenate([np.zeros((1, 1, 2)), error[None]], axis=1)
+    pred_cov = np.concatenate([np.eye(2)[None, None], cov[None]], axis=1)
+    ones = np.ones((1, n + 1), bool)
+    result = tapvid_metrics(pred, ones, pred_cov, gt, ones, ones, np.array([0]), "first")
+    for level in (0.5, 0.9, 0.95, 0.99):  # binomial std at n = 20000: at most 0.0035
+        assert result[f"cov{round(100 * level)}"] == pytest.approx(level, abs=0.012)
+    assert result["nees"] == pytest.approx(2.0, abs=0.08)  # std of the mean of chi2(2): 2 / sqrt(n) = 0.014
+    assert result["cov_finite"] == 1.0
+
+
+def test_cli_plot_writes_png(files, tmp_path):
+    pred, gt = files
+    out = tmp_path / "calibration.png"
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--json", "--plot", str(out)])
+    assert result.exit_code == 0, result.output
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    image = cv2.imread(str(out))
+    assert image is not None and image.shape[1] > image.shape[0] > 100
+    assert json.loads(result.stdout) == pytest.approx(EXPECTED["first"], abs=1e-12)
+
+
+def test_cli_plot_without_matplotlib_is_one_error_line(files, tmp_path, monkeypatch):
+    import sys
+
+    pred, gt = files
+    monkeypatch.setitem(sys.modules, "matplotlib", None)  # import matplotlib now raises ImportError
+    out = tmp_path / "calibration.png"
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--plot", str(out)])
+    assert result.exit_code != 0
+    assert isinstance(result.exception, CondtrackError) and "condtrack[plot]" in str(result.exception)
+    assert result.stdout == "" and not out.exists()

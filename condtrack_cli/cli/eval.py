@@ -21,6 +21,8 @@ def _format(key: str, value: float | int | None) -> str:
         return str(value)
     if key == "median_err":
         return f"{value:.2f} px"
+    if key == "nees":
+        return f"{value:.2f}"
     return f"{100 * value:.1f} %"
 
 
@@ -49,7 +51,9 @@ def _print_table(result: dict, notes: list[str], title: str) -> None:
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
 @click.option("--gt-format", type=click.Choice(tuple(_GT_READERS)), default="csv", show_default=True,
               help="csv: point_id,frame,x,y,visible; tapvid: a TAP-Vid pickle holding one video.")
-def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: str) -> None:
+@click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, metavar="FILE.png",
+              help="Also draw the reliability diagram and the normalised-error histogram (needs condtrack[plot]).")
+def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: str, plot_path: str | None) -> None:
     """Score PRED (a condtrack .csv or .h5) against the ground truth GT with the TAP-Vid metrics.
 
     \b
@@ -59,8 +63,13 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
       jaccard_x     TP / (GT visible + FP); AJ: their mean
       OA            fraction of scored frames with the right visibility
       median_err    median distance on GT-visible scored frames (px)
-      cov95         fraction of GT-visible scored positions inside the
-                    predicted 95% ellipse (ideal 0.95)
+      covP          fraction of GT-visible scored positions inside the
+                    predicted ellipse of level P% (P = 50, 90, 95, 99; ideal P/100)
+      nees          mean d^T C^-1 d over those with a finite covariance (ideal 2)
+      cov_finite    fraction of GT-visible scored positions with a finite covariance
+    --plot FILE.png draws the coverage at every level against the level (a
+    calibrated covariance follows the diagonal) and the histogram of the
+    Mahalanobis distances of the errors against the calibrated (Rayleigh) law.
     A point's query frame is the file's query (HDF5) or its first row (CSV). GT CSV rows that are
     absent are not scored. OA, AJ and jaccard_x are n/a (null) when the GT has
     no occluded scored frame: there is then no visibility to judge. Points are
@@ -73,6 +82,10 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
     truth = _GT_READERS[gt_format](gt)
     tracks, _ = read_tracks(pred)
     result, data = score_tracks(tracks, truth, query_mode)
+    if plot_path is not None:
+        from condtrack_cli.evaluate.plot import write_plot
+
+        write_plot(data, query_mode, plot_path, f"{pred}, '{query_mode}' query mode")
     notes = []
     if len(data.missing_ids):
         shown = ", ".join(str(i) for i in data.missing_ids[:10]) + (", ..." if len(data.missing_ids) > 10 else "")

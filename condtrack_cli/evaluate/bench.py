@@ -125,6 +125,31 @@ def accuracy_table(max_points: int, work: Path) -> list[str]:
     return lines
 
 
+def calibration_table(max_points: int, work: Path) -> list[str]:
+    """Markdown rows: the covariance calibration of every track file ``accuracy_table`` left in ``work``.
+
+    Coverage of the predicted ellipses of level 50/90/95/99 %, the mean NEES (ideal 2) and the
+    share of evaluated rows with a finite covariance, for every method whose output has covariances.
+    """
+    lines = [
+        "| sequence | method | cov50 | cov90 | cov95 | cov99 | NEES | finite |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, _, _, gt_path in sequences(max_points, work):
+        truth = load_gt_csv(gt_path)
+        for method in registry.tracking_methods():
+            out = work / f"{name.replace('/', '_')}.{method}.h5"
+            if not out.is_file():
+                continue
+            result, _ = score_tracks(read_tracks(out)[0], truth, "first")
+            if result["cov95"] is None:  # no ellipse at all: a method without covariance
+                continue
+            cells = [_fmt(result[key]) for key in ("cov50", "cov90", "cov95", "cov99")]
+            nees = "n/a" if result["nees"] is None else f"{result['nees']:.2f}"
+            lines.append(f"| {name} | {method} | {' | '.join(cells)} | {nees} | {_fmt(result['cov_finite'])} |")
+    return lines
+
+
 def speed_table(work: Path, n_points: int = 500, n_frames: int = 60, size: tuple[int, int] = (640, 480)) -> list[str]:
     """Markdown rows of the speed case: ``n_points`` points x ``n_frames`` frames at ``size``."""
     from condtrack_cli.frames.synthetic import make_scene, write_scene
@@ -294,7 +319,12 @@ def main() -> None:
         "`condtrack eval bench/out/<file>.h5 <ground truth>` gives the row's numbers.",
         "",
     ]
-    text = "\n".join(header + accuracy + ["", "## Speed", ""] + speed + ["", "## Many clips", ""] + batch) + "\n"
+    calibration = [
+        "", "## Covariance calibration (same track files; 'first' query mode, GT-visible rows after the query)", "",
+        "covP: share of the ground truth inside the predicted ellipse of level P % (ideal P/100); NEES: mean "
+        "d^T C^-1 d over the rows with a finite covariance (ideal 2); finite: share of those rows.", "",
+    ] + calibration_table(args.max_points, args.work)
+    text = "\n".join(header + accuracy + calibration + ["", "## Speed", ""] + speed + ["", "## Many clips", ""] + batch) + "\n"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     print(f"bench: wrote {args.out}", file=sys.stderr)

@@ -1,4 +1,4 @@
-"""TAP-Vid accuracy metrics and the 95% coverage of the predicted covariances.
+"""TAP-Vid accuracy metrics and the calibration of the predicted covariances (coverage, NEES).
 
 The definitions are those of TAP-Vid (Doersch et al., "TAP-Vid: A Benchmark for
 Tracking Any Point in a Video", NeurIPS 2022, and ``compute_tapvid_metrics`` in
@@ -21,17 +21,27 @@ google-deepmind/tapnet), in pixels of the evaluated sequence (no rescaling to
 A frame on which the prediction has no position (NaN) counts as predicted
 *not visible* and *not within* any threshold.
 
-Two additions of ours:
+Additions of ours:
 
 - ``median_err``: the median distance over GT-visible scored frames, a frame
   without a predicted position counting as an infinite distance (so it is null
   when more than half of those frames have no prediction).
-- ``cov95``: the fraction of GT-visible scored frames whose GT position lies in
-  the predicted 95% ellipse, {d : d^T C^-1 d <= chi2.ppf(0.95, 2)} with d the
-  error and C the predicted covariance. A covariance with an infinite entry is
-  unbounded and contains every position. Frames without a prediction, with a NaN
-  covariance, or with a finite covariance that is not positive definite have no
-  ellipse and are not counted. Null when no frame is counted.
+- ``cov50``, ``cov90``, ``cov95``, ``cov99`` (coverage at level p): the fraction
+  of GT-visible scored frames whose GT position lies in the predicted ellipse of
+  level p, {d : d^T C^-1 d <= chi2.ppf(p, 2)} with d the error and C the
+  predicted covariance; a calibrated covariance gives p. A covariance with an
+  infinite entry is unbounded and contains every position. Frames without a
+  prediction, with a NaN covariance, or with a finite covariance that is not
+  positive definite have no ellipse and are not counted. Null when no frame is
+  counted.
+- ``nees``: the mean normalised estimation error squared d^T C^-1 d over the
+  GT-visible scored frames with a finite positive-definite covariance (ideal 2,
+  the mean of a chi-square with 2 degrees of freedom; above 2: overconfident).
+  Null when there is no such frame.
+- ``cov_finite``: the fraction of GT-visible scored frames with a predicted
+  position and a finite positive-definite covariance (the share on which the
+  coverage says something; an unbounded covariance passes every coverage test).
+  Null without covariances or without GT-visible scored frames.
 
 Null values: a metric that cannot be computed is ``None`` (JSON ``null``). In
 particular, when the scored GT has no occluded frame, ``OA``, ``AJ`` and the
@@ -53,19 +63,27 @@ THRESHOLDS = (1, 2, 4, 8, 16)
 #: Query modes: which frames of a point are scored.
 QUERY_MODES = ("first", "strided")
 
-#: Probability mass of the coverage ellipse.
-COVERAGE = 0.95
+#: Probability masses of the coverage ellipses reported (key ``cov<100 p>``).
+COVERAGE_LEVELS = (0.5, 0.9, 0.95, 0.99)
 
-#: chi2.ppf(COVERAGE, 2): the chi-square law with 2 degrees of freedom has CDF
-#: 1 - exp(-q / 2), hence the closed form -2 ln(1 - p) = 5.991...
-CHI2_2DOF = -2.0 * math.log(1.0 - COVERAGE)
+
+def chi2_2dof(level: float | np.ndarray) -> float | np.ndarray:
+    """chi2.ppf(level, 2): the chi-square law with 2 degrees of freedom has CDF 1 - exp(-q / 2), so -2 ln(1 - p)."""
+    return -2.0 * np.log1p(-np.asarray(level, float)) if isinstance(level, np.ndarray) else -2.0 * math.log1p(-level)
+
+
+def coverage_key(level: float) -> str:
+    """The metric key of the coverage at ``level``: 0.95 -> ``'cov95'``."""
+    return f"cov{round(100 * level)}"
 
 #: The keys of ``tapvid_metrics``' result, in display order.
 METRIC_KEYS = (
     ("delta_avg", "AJ", "OA")
     + tuple(f"pts_within_{x}" for x in THRESHOLDS)
     + tuple(f"jaccard_{x}" for x in THRESHOLDS)
-    + ("median_err", "cov95", "n_points", "n_frames")
+    + ("median_err",)
+    + tuple(coverage_key(p) for p in COVERAGE_LEVELS)
+    + ("nees", "cov_finite", "n_points", "n_frames")
 )
 
 
@@ -92,30 +110,63 @@ def _mean_or_none(values: list[float | None]) -> float | None:
     return None if any(v is None for v in values) else float(np.mean(values))
 
 
-def coverage_inside(error: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Whether each error lies in the 95% ellipse of its covariance.
+def normalised_error(error: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The squared Mahalanobis distance of each error under its covariance, and which ellipses exist.
+
+    error: (..., 2) predicted minus GT position, NaN where there is no prediction.
+    cov: (..., 2, 2) predicted covariance in px^2.
+
+    Returns ``(unbounded, bounded, m2)``, all (...): ``unbounded`` (bool) where the
+    error is finite and the covariance has an infinite entry and no NaN (its ellipse
+    is the whole plane); ``bounded`` (bool) where the error is finite and the
+    covariance finite and positive definite; ``m2`` (float) = d^T C^-1 d where
+    ``bounded``, 0 elsewhere.
+    """
+    has_error = np.isfinite(error).all(axis=-1)
+    unbounded = has_error & np.isinf(cov).any(axis=(-2, -1)) & ~np.isnan(cov).any(axis=(-2, -1))
+    finite = np.isfinite(cov).all(axis=(-2, -1))
+    sxx, sxy, syx, syy = (np.where(finite, cov[..., i, j], 0.0) for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)))
+    det = sxx * syy - sxy * syx
+    bounded = has_error & finite & (sxx > 0) & (det > 0)
+    # Sanitised operands so that no NaN/inf arithmetic (and no warning) happens off the mask.
+    dx, dy = (np.where(bounded, error[..., k], 0.0) for k in (0, 1))
+    det_safe = np.where(bounded, det, 1.0)
+    m2 = (syy * dx * dx - (sxy + syx) * dx * dy + sxx * dy * dy) / det_safe
+    return unbounded, bounded, m2
+
+
+def coverage_inside(error: np.ndarray, cov: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each error lies in the ellipse of level ``level`` of its covariance.
 
     error: (..., 2) predicted minus GT position, NaN where there is no prediction.
     cov: (..., 2, 2) predicted covariance in px^2.
 
     Returns ``(counted, inside)``, both (...) bool: ``counted`` where an ellipse
     exists (finite error, and a covariance with an infinite entry or finite and
-    positive definite); ``inside`` where counted and d^T C^-1 d <= ``CHI2_2DOF``
+    positive definite); ``inside`` where counted and d^T C^-1 d <= chi2.ppf(level, 2)
     (always, for an infinite covariance).
     """
-    has_error = np.isfinite(error).all(axis=-1)
-    unbounded = np.isinf(cov).any(axis=(-2, -1)) & ~np.isnan(cov).any(axis=(-2, -1))
-    finite = np.isfinite(cov).all(axis=(-2, -1))
-    sxx, sxy, syx, syy = (np.where(finite, cov[..., i, j], 0.0) for i, j in ((0, 0), (0, 1), (1, 0), (1, 1)))
-    det = sxx * syy - sxy * syx
-    definite = finite & (sxx > 0) & (det > 0)
-    counted = has_error & (unbounded | definite)
-    # Sanitised operands so that no NaN/inf arithmetic (and no warning) happens off the mask.
-    dx, dy = (np.where(counted & definite, error[..., k], 0.0) for k in (0, 1))
-    det_safe = np.where(definite, det, 1.0)
-    m2 = (syy * dx * dx - (sxy + syx) * dx * dy + sxx * dy * dy) / det_safe  # Mahalanobis^2
-    inside = counted & (unbounded | (m2 <= CHI2_2DOF))
-    return counted, inside
+    unbounded, bounded, m2 = normalised_error(error, cov)
+    return unbounded | bounded, unbounded | (bounded & (m2 <= chi2_2dof(level)))
+
+
+def calibration_metrics(error: np.ndarray, cov: np.ndarray | None, rows: np.ndarray) -> dict[str, float | None]:
+    """The coverage keys, ``nees`` and ``cov_finite`` (module docstring) over the ``rows`` (P, F) bool.
+
+    error: (P, F, 2) predicted minus GT (NaN where no prediction); cov: (P, F, 2, 2) or None (all null).
+    """
+    keys = [coverage_key(p) for p in COVERAGE_LEVELS] + ["nees", "cov_finite"]
+    if cov is None:
+        return dict.fromkeys(keys)
+    unbounded, bounded, m2 = normalised_error(error, cov)
+    unbounded, bounded = unbounded & rows, bounded & rows
+    counted = int((unbounded | bounded).sum())
+    out = {
+        coverage_key(p): _ratio((unbounded | (bounded & (m2 <= chi2_2dof(p)))).sum(), counted) for p in COVERAGE_LEVELS
+    }
+    out["nees"] = float(m2[bounded].mean()) if bounded.any() else None
+    out["cov_finite"] = _ratio(bounded.sum(), rows.sum())
+    return out
 
 
 def tapvid_metrics(
@@ -132,7 +183,7 @@ def tapvid_metrics(
 
     pred_xy: (P, F, 2) predicted positions in pixels, NaN where none.
     pred_visible: (P, F) bool predicted visibility (ignored where pred_xy is NaN).
-    pred_cov: (P, F, 2, 2) predicted covariances in px^2, or None (then cov95 is None).
+    pred_cov: (P, F, 2, 2) predicted covariances in px^2, or None (then the coverages, nees and cov_finite are None).
     gt_xy: (P, F, 2) GT positions in pixels (finite where visible and known).
     gt_visible: (P, F) bool GT visibility. gt_known: (P, F) bool, False where the
     GT says nothing about the frame (never scored).
@@ -169,10 +220,6 @@ def tapvid_metrics(
     median = float(np.median(errors)) if errors.size else math.inf
     out["median_err"] = median if math.isfinite(median) else None
 
-    if pred_cov is None:
-        out["cov95"] = None
-    else:
-        counted, inside = coverage_inside(pred_xy - gt_xy, pred_cov)
-        out["cov95"] = _ratio((inside & gt_vis).sum(), (counted & gt_vis).sum())
+    out.update(calibration_metrics(pred_xy - gt_xy, pred_cov, gt_vis))
     out["n_points"], out["n_frames"] = int(n_points), int(n_frames)
     return out
