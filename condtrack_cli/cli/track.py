@@ -10,7 +10,7 @@ import click
 
 from condtrack_cli import registry
 from condtrack_cli.config import Config, check_method, load_config
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, read_error
 from condtrack_cli.progress import Progress
 
 
@@ -51,7 +51,7 @@ def _configure_logging(quiet: bool) -> None:
 @click.option("-m", "--method", type=_MethodChoice(), help="Tracking method (overrides filter.method); see `condtrack stages`.")
 @click.option("-o", "--output", "output_path", type=click.Path(dir_okay=False), help="Output .h5/.hdf5 or .csv (default: CSV on stdout).")
 @click.option("--overlay", "overlay_path", type=click.Path(dir_okay=False), help="Also render an overlay video (.mp4) of the tracks.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of every random draw.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override one config value, e.g. motion.levels=3 (repeatable).")
 @click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
 @click.option("--out-dir", type=click.Path(file_okay=False), help="Batch: folder of the outputs, one <input name>.<format> each.")
@@ -84,7 +84,10 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     if out_dir is None:
         raise CondtrackError("several inputs need --out-dir")
     summaries = track_batch(inputs, config, queries_path, Path(out_dir), f".{batch_format}", seed, jobs)
-    _print_batch_table(summaries, config.method)
+    if not quiet:
+        _print_batch_table(summaries, config.method)
+    for failed in (s for s in summaries if s.error and quiet):  # -q: the failures only, one line each
+        click.echo(f"Error: {failed.input}: {failed.error}", err=True)
     if any(s.error for s in summaries):
         sys.exit(1)
 
@@ -93,7 +96,7 @@ def _read_list(path: str) -> list[str]:
     try:
         lines = Path(path).read_text(encoding="utf-8").splitlines()
     except OSError as error:
-        raise CondtrackError(f"{path}: cannot read the input list ({error.strerror})") from None
+        raise read_error(error, f"{path}: cannot read the input list ({error.strerror})") from None
     return [line.strip() for line in lines if line.strip() and not line.lstrip().startswith("#")]
 
 
