@@ -98,20 +98,20 @@ def track_sequence(
     Returns the tracks and the opened frame source (for an overlay).
 
     ``queries``: a CSV path, an (N, 3) array of ``frame, x, y`` rows, or None
-    (detect on frame 0). ``progress_factory(total_frames)`` returns a per-frame
+    (detect on frame 0). ``progress_factory(forward_frames, backward_frames)`` returns a per-frame
     callback with ``close()`` (:class:`condtrack_cli.progress.Progress`); None tracks silently.
     """
     given = queries
     frames_stage = config.stage("frames")
     source = registry.get("frames", frames_stage.name).factory(frames_stage.settings, str(input_path))
     info = source.info
-    config.check_fits_frame(info.width, info.height)
+    config.check_fits_frame(info.width, info.height, detecting=queries is None)
     if queries is None or isinstance(queries, (str, Path)):
         queries = read_queries(queries, info) if queries is not None else None
     else:
         queries = queries_from_rows(queries, info)
     backward_frames = int(queries.frame.max()) + 1 if queries is not None and queries.frame.max() > 0 else 0
-    progress = progress_factory(info.n_frames + backward_frames) if progress_factory else None
+    progress = progress_factory(info.n_frames, backward_frames) if progress_factory else None
     try:
         result = pipeline.run(source, info, config, queries, seed=seed, on_frame=progress)
     finally:

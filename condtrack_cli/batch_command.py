@@ -142,7 +142,7 @@ def run_batch(
         if quiet:  # -q silences progress and the table, not the errors
             for r in ordered:
                 if r.status == "failed":
-                    click.echo(f"failed: {r.input}: {r.error}", err=True)
+                    click.echo(f"Error: {r.input}: {r.error}", err=True)
         click.echo(f"Error: {failed} of {len(ordered)} inputs failed (see {Path(out_dir) / 'manifest.jsonl'})", err=True)
         sys.exit(1)
 

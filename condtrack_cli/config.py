@@ -23,7 +23,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from condtrack_cli import registry
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, read_error
 
 
 class StageSettings(BaseModel):
@@ -99,18 +99,32 @@ class Config:
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
 
-    def check_fits_frame(self, width: int, height: int) -> None:
-        """Refuse a window (``frame_windows`` of any stage) larger than a ``width`` x ``height`` frame."""
-        sections = {kind: stage.settings for kind, stage in self.stages.items()}
+    def check_fits_frame(self, width: int, height: int, detecting: bool = True) -> None:
+        """Refuse a window (``frame_windows`` of any stage) larger than a ``width`` x ``height`` frame.
+
+        ``detecting``: points are detected (no queries file), so the detector's
+        windows count too; with queries they are only read on the query points,
+        where a window larger than the frame is clipped.
+        """
+        sections = {kind: stage.settings for kind, stage in self.stages.items() if detecting or kind != "detect"}
         sections.update({f"filter.{name}": settings for name, settings in self.filters.items()})
         for prefix, settings in sections.items():
             for field in settings.frame_windows:
-                side = getattr(settings, field)
-                if side > min(width, height):
-                    raise CondtrackError(
-                        f"config key '{prefix}.{field}': a window of {side} px does not fit in the "
-                        f"{width}x{height} frame (at most {min(width, height)})"
-                    )
+                side, smallest = getattr(settings, field), _minimum(type(settings), field)
+                if side <= min(width, height):
+                    continue
+                advice = (f"at most {min(width, height)}" if min(width, height) >= smallest else
+                          f"the {width}x{height} frame is smaller than the key's minimum of {smallest} px")
+                raise CondtrackError(
+                    f"config key '{prefix}.{field}': a window of {side} px does not fit in the "
+                    f"{width}x{height} frame ({advice})"
+                )
+
+
+def _minimum(model: type[BaseModel], field: str) -> int:
+    """The smallest value the settings model allows for ``field`` (its ``ge`` bound, 1 without one)."""
+    bounds = [getattr(item, "ge", None) for item in model.model_fields[field].metadata]
+    return max([bound for bound in bounds if bound is not None], default=1)
 
 
 def valid_methods() -> list[str]:
@@ -130,6 +144,8 @@ def _format_validation_error(prefix: str, error: ValidationError, model: type[Ba
     if first["type"] == "extra_forbidden":
         valid = ", ".join(model.model_fields)
         return f"config key '{key}': unknown key; valid keys: {valid}"
+    if first["type"] == "value_error" and not first["loc"]:  # a rule across keys: the message names them
+        return f"config key '{key}': {first['ctx']['error']}"
     got = first.get("input")
     return f"config key '{key}': {first['msg']} (got {got!r})"
 
@@ -211,7 +227,7 @@ def read_yaml(path: str | Path) -> dict:
     try:
         text = path.read_text(encoding="utf-8")
     except OSError as error:
-        raise CondtrackError(f"cannot read config file {str(path)!r}: {error.strerror or error}") from None
+        raise read_error(error, f"cannot read config file {str(path)!r}: {error.strerror or error}") from None
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as error:

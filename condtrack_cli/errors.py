@@ -1,9 +1,23 @@
-"""The one exception type that reaches the user as a one-line ``Error: ...``."""
+"""The exceptions that reach the user as a one-line ``Error: ...`` and an exit code (README, "Exit codes")."""
 
 
 class CondtrackError(Exception):
     """Bad input or configuration: the message names the file, key or frame.
 
-    The command line prints ``Error: <message>`` on stderr and exits non-zero,
-    without a traceback and without leaving a partial output file.
+    The command line prints ``Error: <message>`` on stderr and exits with
+    ``exit_code`` (1: the run failed), without a traceback and without leaving
+    a partial output file.
     """
+
+    exit_code = 1
+
+
+class MissingInput(CondtrackError):
+    """An input path given on the command line does not exist: a usage error, exit code 2 (as Click's)."""
+
+    exit_code = 2
+
+
+def read_error(error: OSError | Exception, message: str) -> CondtrackError:
+    """``message`` as :class:`MissingInput` when ``error`` says the file does not exist, else as CondtrackError."""
+    return (MissingInput if isinstance(error, FileNotFoundError) else CondtrackError)(message)

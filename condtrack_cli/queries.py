@@ -3,14 +3,31 @@
 from __future__ import annotations
 
 import csv
+import decimal
 from pathlib import Path
 
 import numpy as np
 
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, read_error
 from condtrack_cli.types import Queries, SequenceInfo
 
 REQUIRED_COLUMNS = ("frame", "x", "y")
+#: Columns read as exact 64-bit integers (never through a float, which rounds ids above 2^53).
+INTEGER_COLUMNS = ("frame", "point_id")
+INT64 = np.iinfo(np.int64)
+
+
+def _integer(cell: str) -> int:
+    """``cell`` as an exact whole number in the int64 range ('12', '12.0' and '1.2e1' are 12); ValueError saying why not."""
+    try:
+        number = decimal.Decimal(cell.strip())
+    except decimal.InvalidOperation:
+        raise ValueError("is not a number") from None
+    if not number.is_finite() or number != number.to_integral_value():
+        raise ValueError("is not a whole number")
+    if not INT64.min <= number <= INT64.max:
+        raise ValueError(f"is outside the 64-bit integer range [{INT64.min}, {INT64.max}]")
+    return int(number)
 
 
 def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
@@ -22,10 +39,10 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
     """
     path = Path(path)
     try:
-        with path.open(newline="", encoding="utf-8") as handle:
+        with path.open(newline="", encoding="utf-8-sig") as handle:  # -sig: a spreadsheet's byte-order mark
             rows = list(csv.reader(handle))
     except (OSError, UnicodeDecodeError) as error:
-        raise CondtrackError(f"{path}: cannot read the queries file ({error})") from None
+        raise read_error(error, f"{path}: cannot read the queries file ({error})") from None
     if not rows:
         raise CondtrackError(f"{path}: empty queries file (expected a header frame,x,y[,point_id])")
     header = [name.strip() for name in rows[0]]
@@ -38,21 +55,20 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
     columns = {name: header.index(name) for name in (*REQUIRED_COLUMNS, "point_id") if name in header}
     values = {}
     for name, column in columns.items():
+        parse = _integer if name in INTEGER_COLUMNS else float
         cells = []
         for line, row in enumerate(body, start=2):
+            cell = row[column] if column < len(row) else ""
             try:
-                cells.append(float(row[column]))
-            except (IndexError, ValueError):
-                cell = row[column] if column < len(row) else ""
-                raise CondtrackError(f"{path}: row {line}, column '{name}': {cell!r} is not a number") from None
-        values[name] = np.array(cells)
-    for name in ("frame", "point_id"):
-        if name in values and not np.all(values[name] == np.round(values[name])):
-            line = int(np.argmax(values[name] != np.round(values[name]))) + 2
-            raise CondtrackError(f"{path}: row {line}, column '{name}': must be a whole number")
-    point_id = values["point_id"].astype(np.int64) if "point_id" in values else np.arange(len(body), dtype=np.int64)
-    return checked_queries(str(path), point_id, values["frame"].astype(np.int64),
-                           np.column_stack([values["x"], values["y"]]), info, first_row=2)
+                cells.append(parse(cell))
+            except ValueError as error:
+                reason = str(error) if parse is _integer else "is not a number"
+                raise CondtrackError(f"{path}: row {line}, column '{name}': {cell!r} {reason}") from None
+        values[name] = np.array(cells, dtype=np.int64 if parse is _integer else np.float64)
+    point_id = values["point_id"] if "point_id" in values else np.arange(len(body), dtype=np.int64)
+    frame = values["frame"]
+    xy = np.column_stack([values["x"], values["y"]])
+    return checked_queries(str(path), point_id, frame, xy, info, first_row=2)
 
 
 def queries_from_rows(rows: np.ndarray, info: SequenceInfo) -> Queries:

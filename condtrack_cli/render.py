@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.io.atomic import atomic_path, publish, staging_folder
+from condtrack_cli.io.atomic import atomic_path, check_writable, publish, staging_folder
 from condtrack_cli.registry import method_codes
 from condtrack_cli.types import Tracks
 
@@ -52,6 +52,8 @@ OTHER_COLOUR = np.array((255, 0, 255))  # magenta
 DEFAULT_FPS = 25.0
 #: Codec tried for the video; when it does not open, a folder of PNGs is written instead.
 FOURCC = "mp4v"
+#: Containers of the video, by file extension (OpenCV picks the container from it).
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
 
 _DOT_RADIUS = 2.5       # px, visible mark
 _CROSS_HALF = 3.0       # px, half the side of the not-visible X
@@ -211,6 +213,16 @@ def _write_png(path: Path, image: np.ndarray) -> None:
         path.write_bytes(encoded.tobytes())
     except OSError as error:
         raise CondtrackError(f"{path}: cannot write ({error.strerror})") from None
+
+
+def check_video_path(path: Path) -> None:
+    """Refuse, before any work, a video name whose extension is not a video container, or an unwritable folder."""
+    if path.suffix.lower() not in VIDEO_SUFFIXES:
+        raise CondtrackError(
+            f"{path}: the overlay is an MPEG-4 video; name it {' or '.join(VIDEO_SUFFIXES)}"
+            + (" (a PNG picture is --contact-sheet)" if path.suffix.lower() == ".png" else "")
+        )
+    check_writable(path)
 
 
 def render_overlay(tracks: Tracks, frames: Iterable[np.ndarray], out_path: str | Path, fps: float, *,

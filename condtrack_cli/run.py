@@ -55,7 +55,7 @@ def track_input(
 ) -> RunSummary:
     """Track one input and write its output (CSV on stdout when ``output_path`` is None).
 
-    ``progress_factory(total_frames)`` returns a per-frame callback with a
+    ``progress_factory(forward_frames, backward_frames)`` returns a per-frame callback with a
     ``close()`` method giving the elapsed seconds; None tracks silently.
     """
     if output_path is not None:
@@ -83,6 +83,7 @@ def track_input(
 
 
 def check_overlay_path(path: Path) -> None:
-    """Refuse an overlay path whose folder does not exist or cannot be written, before any work."""
-    if not path.parent.is_dir() or not os.access(path.parent, os.W_OK | os.X_OK):
-        raise CondtrackError(f"{path}: the overlay folder '{path.parent}' does not exist or is not writable")
+    """Refuse an overlay path that is not a video name or whose folder cannot be written, before any work."""
+    from condtrack_cli.render import check_video_path
+
+    check_video_path(path)

@@ -113,7 +113,8 @@ def test_batch_with_one_broken_input(tmp_path):
     result = run_cli("track", str(good), "--from-list", str(listing), "--out-dir", str(out_dir), "-j", "2", "-q")
     assert result.returncode == 1
     assert sorted(p.name for p in out_dir.glob("*.h5")) == ["frames.h5", "occlusion.h5"]
-    assert "failed" in result.stderr and "not a readable image" in result.stderr
+    assert result.stderr.splitlines() == [line for line in result.stderr.splitlines() if line.startswith("Error: ")]
+    assert f"Error: {broken}: " in result.stderr and "not a readable image" in result.stderr
 
 
 def test_same_seed_same_bytes(tmp_path):
@@ -135,3 +136,84 @@ def test_same_seed_same_bytes(tmp_path):
                 same = left.tolist() == right.tolist() if left.dtype == object else left.tobytes() == right.tobytes()
                 assert same, name
         assert dict(a.attrs) == dict(b.attrs)
+
+
+def _one_error_line(result, code: int, message: str) -> None:
+    """Exit ``code``, stderr exactly one ``Error:`` line holding ``message`` (after warnings), no traceback."""
+    assert result.returncode == code, result.stderr
+    lines = [line for line in result.stderr.strip().splitlines() if not line.startswith("warning: ")]
+    assert len(lines) == 1 and lines[0].startswith("Error: ") and message in lines[0], result.stderr
+
+
+def test_negative_seed_is_a_usage_error(tmp_path):
+    _one_error_line(run_cli("track", str(SAMPLE), "--seed", "-1", "-o", str(tmp_path / "out.csv")), 2, "--seed")
+    _one_error_line(run_cli("synth", str(tmp_path / "s"), "--scene", "ring", "--seed", "-1"), 2, "--seed")
+    assert not list(tmp_path.iterdir())
+
+
+def test_synth_into_a_folder_that_cannot_be_written(tmp_path):
+    (tmp_path / "afile").write_text("a file, not a folder")
+    _one_error_line(run_cli("synth", str(tmp_path / "afile" / "scene"), "--scene", "ring", "--frames", "2",
+                            "--size", "64x64"), 1, "afile")
+    assert [p.name for p in tmp_path.iterdir()] == ["afile"]
+
+
+def test_auto_support_thresholds_in_the_wrong_order_are_refused(tmp_path):
+    result = run_cli("track", str(SAMPLE), "--set", "filter.auto.support_low=0.9", "--set", "filter.auto.support_high=0.8",
+                     "-o", str(tmp_path / "out.csv"))
+    _one_error_line(result, 1, "'filter.auto.support_low' (0.9) must not exceed 'filter.auto.support_high' (0.8)")
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_frame_smaller_than_every_window_is_refused_with_honest_advice(tmp_path):
+    """2x2 frames with a query: detect.block does not apply (no detection); the advice is not below a key's minimum."""
+    folder = _frames_folder(tmp_path, ((2, 2),) * 3)
+    queries = tmp_path / "q.csv"
+    queries.write_text("frame,x,y\n0,0.5,0.5\n")
+    result = run_cli("track", str(folder), "-p", str(queries), "-m", "stk", "-o", str(tmp_path / "out.csv"))
+    _one_error_line(result, 1, "the 2x2 frame is smaller than the key's minimum of")
+    assert "detect.block" not in result.stderr and "at most" not in result.stderr
+    result = run_cli("track", str(folder), "-m", "stk", "-o", str(tmp_path / "out.csv"))
+    _one_error_line(result, 1, "'detect.block'")
+
+
+@pytest.mark.parametrize("option, value", [("--atol-px", "nan"), ("--atol-px", "inf"), ("--rtol-cov", "inf"),
+                                           ("--rtol-cov", "nan")])
+def test_compare_refuses_tolerances_that_are_not_finite(tmp_path, option, value):
+    tracks = SAMPLE / "tracks.csv"
+    _one_error_line(run_cli("compare", str(tracks), str(tracks), option, value), 2, option)
+
+
+def test_quiet_batch_prints_nothing(tmp_path):
+    good = _frames_folder(tmp_path)
+    out_dir = tmp_path / "outs"
+    out_dir.mkdir()
+    result = run_cli("track", str(good), str(SAMPLE), "--out-dir", str(out_dir), "-m", "stk", "-q")
+    assert result.returncode == 0 and result.stderr == "" and result.stdout == ""
+
+
+def test_progress_names_the_forward_and_the_backward_pass(tmp_path):
+    """The occlusion sample: 30 frames, latest query on frame 7, so the backward pass reads frames 7..0."""
+    result = run_cli("track", str(SAMPLE), "-p", str(SAMPLE / "queries.csv"), "-m", "stk", "-o", str(tmp_path / "o.csv"))
+    progress = [line for line in result.stderr.splitlines() if "frame" in line and "active" in line]
+    assert progress[0].startswith("forward pass: frame 3/30") and "forward pass: frame 30/30:" in result.stderr
+    assert progress[-1].startswith("backward pass: frame 8/8:")
+
+
+@pytest.mark.parametrize("args", [
+    ["track", "{missing}"],
+    ["track", str(SAMPLE), "-p", "{missing}"],
+    ["track", str(SAMPLE), "-c", "{missing}"],
+    ["track", "--from-list", "{missing}", "--out-dir", "{tmp}"],
+    ["eval", "{missing}", str(SAMPLE / "tracks.csv")],
+    ["eval", str(SAMPLE / "tracks.csv"), "{missing}"],
+    ["info", "{missing}"],
+    ["render", "{missing}", str(SAMPLE), "-o", "{tmp}/o.mp4"],
+    ["compare", "{missing}", str(SAMPLE / "tracks.csv")],
+])
+def test_a_missing_input_file_exits_2_in_every_command(tmp_path, args):
+    """One convention (README, "Exit codes"): 2 for a wrong command line, a missing input included; 1 for a failed run."""
+    missing = tmp_path / "missing.file"
+    args = [a.format(missing=missing, tmp=tmp_path) for a in args]
+    _one_error_line(run_cli(*args), 2, "missing.file")
+    assert not list(tmp_path.iterdir())

@@ -89,3 +89,13 @@ def test_unreadable_video(tmp_path):
     bogus.write_bytes(b"not a video at all")
     with pytest.raises(CondtrackError, match="clip.mp4: not a readable video"):
         open_frames(FrameSettings(), bogus)
+
+
+def test_a_dangling_symlink_frame_is_an_error_naming_it(tmp_path):
+    """Dropping it would shift every later frame number (issue 16 item 7)."""
+    image = np.zeros((8, 8), np.uint8)
+    for k in (0, 2):
+        cv2.imwrite(str(tmp_path / f"f{k}.png"), image)
+    (tmp_path / "f1.png").symlink_to(tmp_path / "gone.png")
+    with pytest.raises(CondtrackError, match=r"f1\.png: a broken symbolic link"):
+        open_frames(FrameSettings(), tmp_path)

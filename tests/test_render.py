@@ -262,3 +262,23 @@ def test_info_refuses_a_bad_file_naming_it(tmp_path):
     bad.write_bytes(b"nope")
     result = CliRunner().invoke(info_command, [str(bad)])
     assert isinstance(result.exception, CondtrackError) and "bad.h5" in str(result.exception)
+
+
+@pytest.mark.parametrize("name", ["o.png", "o.h5", "o"])
+def test_render_refuses_an_output_name_that_is_not_a_video(frames_folder, tmp_path, name):
+    """The video is MPEG-4 in the container its extension names: -o x.png is refused, not an MPEG-4 named .png."""
+    h5 = write_h5(tmp_path / "t.h5")
+    result = CliRunner().invoke(render_command, [str(h5), str(frames_folder), "-o", str(tmp_path / name)])
+    assert isinstance(result.exception, CondtrackError) and name in str(result.exception)
+    assert ".mp4" in str(result.exception)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "t.h5"]
+
+
+def test_render_checks_every_output_folder_before_work(frames_folder, tmp_path):
+    """/proc is a folder that even root cannot create files in: refused before the video is written."""
+    h5 = write_h5(tmp_path / "t.h5")
+    result = CliRunner().invoke(render_command, [
+        str(h5), str(frames_folder), "-o", str(tmp_path / "o.mp4"), "--contact-sheet", "/proc/s.png",
+    ])
+    assert isinstance(result.exception, CondtrackError) and "/proc/s.png" in str(result.exception)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "t.h5"]

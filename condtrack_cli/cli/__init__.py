@@ -18,6 +18,7 @@ from condtrack_cli.cli.stages import stages
 from condtrack_cli.cli.synth import synth
 from condtrack_cli.cli.track import track
 from condtrack_cli.errors import CondtrackError
+from condtrack_cli.interrupts import exit_code, raise_on_sigterm
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
@@ -32,17 +33,16 @@ for _command in (track, eval_command, compare_command, render_command, info_comm
 
 def main() -> None:
     """Console entry point: one-line ``Error: ...`` and a non-zero exit on bad input."""
+    raise_on_sigterm()
     try:
         code = cli.main(standalone_mode=False)
     except CondtrackError as error:
         click.echo(f"Error: {error}", err=True)
-        sys.exit(1)
-    except click.exceptions.Abort:
+        sys.exit(error.exit_code)
+    except (click.exceptions.Abort, KeyboardInterrupt) as stop:  # Ctrl-C or SIGTERM; Click turns them into Abort
+        interrupt = stop if isinstance(stop, KeyboardInterrupt) else stop.__context__
         click.echo("Error: interrupted", err=True)
-        sys.exit(130)
-    except KeyboardInterrupt:
-        click.echo("Error: interrupted", err=True)
-        sys.exit(130)
+        sys.exit(exit_code(interrupt) if isinstance(interrupt, KeyboardInterrupt) else 130)
     except click.ClickException as error:
         click.echo(f"Error: {error.format_message()}", err=True)
         sys.exit(error.exit_code)

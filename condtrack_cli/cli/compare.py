@@ -81,11 +81,26 @@ def report_json(result: Comparison, path_a: str, path_b: str) -> dict:
     }
 
 
+class FiniteFloat(click.ParamType):
+    """A finite float >= 0 (nan would make every comparison pass; inf is no tolerance, say so by a large number)."""
+
+    name = "float"
+
+    def convert(self, value, param, ctx) -> float:
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            self.fail(f"{value!r} is not a number", param, ctx)
+        if not math.isfinite(number) or number < 0:
+            self.fail(f"{value!r} is not a finite number >= 0", param, ctx)
+        return number
+
+
 @click.argument("path_a", metavar="A")
 @click.argument("path_b", metavar="B")
-@click.option("--atol-px", type=click.FloatRange(min=0), default=ATOL_PX, show_default=True,
+@click.option("--atol-px", type=FiniteFloat(), default=ATOL_PX, show_default=True,
               help="Absolute tolerance on positions, query positions and measurements (px).")
-@click.option("--rtol-cov", type=click.FloatRange(min=0), default=RTOL_COV, show_default=True,
+@click.option("--rtol-cov", type=FiniteFloat(), default=RTOL_COV, show_default=True,
               help=f"Relative tolerance on covariances (plus {COV_ATOL:g} px^2).")
 @click.option("--ignore-visible-flips", "visible_flips", type=click.IntRange(min=0), default=0, show_default=True,
               metavar="N", help="Number of (point, frame) visibility flips still counted as agreement.")

@@ -13,7 +13,7 @@ from condtrack_cli.errors import CondtrackError
 @click.argument("tracks_path", metavar="TRACKS", type=click.Path(dir_okay=False))
 @click.argument("input_path", metavar="INPUT")
 @click.option("-o", "--output", "output_path", required=True, type=click.Path(dir_okay=False),
-              help="Overlay video, e.g. OUT.mp4 (a folder OUT/ of PNGs when no video codec opens).")
+              help="Overlay video: OUT.mp4, .avi, .mov or .mkv (MPEG-4; a folder OUT/ of PNGs when no codec opens).")
 @click.option("--contact-sheet", "sheet_path", type=click.Path(dir_okay=False),
               help="Also write a PNG tiling evenly spaced frames with the overlay.")
 @click.option("--trail", type=click.IntRange(min=1), default=10, show_default=True,
@@ -37,14 +37,16 @@ def render_command(tracks_path: str, input_path: str, output_path: str, sheet_pa
     """
     from condtrack_cli.frames.readers import FrameSettings, open_frames
     from condtrack_cli.io.read import matched_to_input, read_tracks, stored_particles
-    from condtrack_cli.render import render_contact_sheet, render_overlay
+    from condtrack_cli.io.atomic import check_writable
+    from condtrack_cli.render import check_video_path, render_contact_sheet, render_overlay
 
     tracks_file, output = Path(tracks_path), Path(output_path)
     sheet = Path(sheet_path) if sheet_path else None
+    check_video_path(output)
     if sheet is not None and sheet.suffix.lower() != ".png":
         raise CondtrackError(f"{sheet}: the contact sheet is a PNG (use a .png name)")
-    if sheet is not None and not sheet.parent.is_dir():  # checked now: the sheet is written after the video
-        raise CondtrackError(f"{sheet}: the output folder '{sheet.parent}' does not exist")
+    if sheet is not None:  # checked now: the sheet is written after the video
+        check_writable(sheet)
     tracks, meta = read_tracks(tracks_file)
     source = open_frames(FrameSettings(), input_path)
     if output.resolve() == Path(input_path).resolve():

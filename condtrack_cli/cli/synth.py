@@ -11,7 +11,7 @@ from condtrack_cli.errors import CondtrackError
 @click.argument("out", type=click.Path(file_okay=False))
 @click.option("--scene", help="Scene to write into OUT: camera_motion, occlusion, ring, illumination, fast.")
 @click.option("--samples", is_flag=True, help="Write the shipped sample sequences under OUT instead (make samples).")
-@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--size", default="320x240", show_default=True, help="WIDTHxHEIGHT in pixels.")
 @click.option("--frames", "n_frames", type=click.IntRange(min=2), help="Number of frames (the scene's default otherwise).")
 @click.option("--noise", type=click.FloatRange(min=0), help="Noise standard deviation (grey levels).")
@@ -20,7 +20,11 @@ def synth(out, scene, samples, seed, size, n_frames, noise) -> None:
     from condtrack_cli.frames.synthetic import make_scene, write_samples, write_scene
 
     if samples:
-        for name, folder in write_samples(out).items():
+        try:
+            written = write_samples(out)
+        except OSError as error:
+            raise CondtrackError(f"{out}: cannot write the samples ({error.strerror}: {error.filename})") from None
+        for name, folder in written.items():
             click.echo(f"{name}: {folder}")
         return
     if not scene:
@@ -32,4 +36,6 @@ def synth(out, scene, samples, seed, size, n_frames, noise) -> None:
         written = write_scene(make_scene(scene, seed, (int(width), int(height)), n_frames, noise), out)
     except ValueError as error:
         raise CondtrackError(str(error)) from None
+    except OSError as error:
+        raise CondtrackError(f"{out}: cannot write the scene ({error.strerror}: {error.filename})") from None
     click.echo(f"{scene}: {written}")

@@ -11,7 +11,7 @@ import click
 from condtrack_cli import registry
 from condtrack_cli.batch_command import batch_options, run_batch, single_run_threads
 from condtrack_cli.config import Config, check_method, load_config
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, read_error
 from condtrack_cli.progress import Progress
 
 
@@ -52,7 +52,7 @@ def _configure_logging(quiet: bool) -> None:
 @click.option("-m", "--method", type=_MethodChoice(), help="Tracking method (overrides filter.method); see `condtrack stages`.")
 @click.option("-o", "--output", "output_path", type=click.Path(dir_okay=False), help="Output .h5/.hdf5 or .csv (default: CSV on stdout).")
 @click.option("--overlay", "overlay_path", type=click.Path(dir_okay=False), help="Also render an overlay video (.mp4) of the tracks.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of every random draw.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override one config value, e.g. motion.levels=3 (repeatable).")
 @click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
 @click.option("--out-dir", type=click.Path(file_okay=False), help="Batch: folder of the outputs (created if missing), one <input name>.<format> each, and manifest.jsonl.")
@@ -94,5 +94,5 @@ def _read_list(path: str) -> list[str]:
     try:
         lines = Path(path).read_text(encoding="utf-8").splitlines()
     except OSError as error:
-        raise CondtrackError(f"{path}: cannot read the input list ({error.strerror})") from None
+        raise read_error(error, f"{path}: cannot read the input list ({error.strerror})") from None
     return [line.strip() for line in lines if line.strip() and not line.lstrip().startswith("#")]

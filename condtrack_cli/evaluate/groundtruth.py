@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, read_error
 from condtrack_cli.types import Tracks
 
 #: Columns a ground-truth CSV must have.
@@ -122,7 +122,7 @@ def load_gt_csv(path: str | Path) -> GroundTruth:
         with path.open(newline="", encoding="utf-8") as f:
             rows = list(csv.reader(f))
     except (OSError, UnicodeDecodeError, csv.Error) as error:
-        raise CondtrackError(f"{path}: cannot read the ground truth ({error})") from None
+        raise read_error(error, f"{path}: cannot read the ground truth ({error})") from None
     header = [name.strip() for name in rows[0]] if rows else []
     absent = [name for name in GT_COLUMNS if name not in header]
     if absent:
@@ -217,7 +217,7 @@ def load_gt_tapvid(path: str | Path) -> GroundTruth:
         with path.open("rb") as f:
             data = pickle.load(f)
     except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ImportError, ValueError) as error:
-        raise CondtrackError(f"{path}: cannot read the TAP-Vid pickle ({error})") from None
+        raise read_error(error, f"{path}: cannot read the TAP-Vid pickle ({error})") from None
     video = _single_video(data, path)
     for key in ("video", "points", "occluded"):
         if key not in video:

@@ -35,7 +35,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from condtrack_cli.config import Config, StageSettings
 from condtrack_cli.detect.shi_tomasi import trackable
@@ -53,6 +53,13 @@ class AutoSettings(StageSettings):
     integration_frames: int = Field(3, ge=1, description="frames over which a point's support is averaged")
     support_low: float = Field(0.6, ge=0, le=1, description="to the CNLF when the support falls below this")
     support_high: float = Field(0.8, ge=0, le=1, description="back to the CLF when the support rises above this")
+
+    @model_validator(mode="after")
+    def _thresholds_in_order(self) -> "AutoSettings":
+        if self.support_low > self.support_high:
+            raise ValueError(f"'filter.auto.support_low' ({self.support_low:g}) must not exceed "
+                             f"'filter.auto.support_high' ({self.support_high:g})")
+        return self
 
 
 class AutoTracker(Tracker):
@@ -88,7 +95,7 @@ class AutoTracker(Tracker):
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         self.trackable[index] = trackable(frame.gray, self.xy[index], self.detect.block, self.detect.min_eigenvalue)
-        self.clf.xy[index] = self.xy[index]
+        self.clf.xy[index], self.clf.visible[index] = self.xy[index], self.visible[index]
         self.clf._start(index, frame)
         self._collect(index, self.clf)
 

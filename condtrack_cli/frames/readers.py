@@ -22,7 +22,7 @@ import numpy as np
 from pydantic import Field
 
 from condtrack_cli.config import StageSettings
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, MissingInput
 from condtrack_cli.registry import register
 from condtrack_cli.types import SequenceInfo
 
@@ -60,7 +60,11 @@ class FolderSource:
     """A folder of image files, one frame per file."""
 
     def __init__(self, folder: Path, settings: FrameSettings):
-        names = sorted((p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")), key=natural_key)
+        entries = [p for p in folder.iterdir() if not p.name.startswith(".")]
+        broken = [p for p in entries if p.is_symlink() and not p.exists()]
+        if broken:  # skipping it would shift every later frame number
+            raise CondtrackError(f"{broken[0]}: a broken symbolic link (its target '{broken[0].readlink()}' does not exist)")
+        names = sorted((p.name for p in entries if p.is_file()), key=natural_key)
         images = [n for n in names if Path(n).suffix.lower() in IMAGE_EXTENSIONS]
         others = [n for n in names if Path(n).suffix.lower() not in IMAGE_EXTENSIONS]
         if others and settings.non_image_files == "refuse":
@@ -159,7 +163,7 @@ def open_frames(settings: FrameSettings, path: str | Path) -> FolderSource | Vid
     """Open ``path`` as a frame source; CondtrackError naming the path otherwise."""
     path = Path(path)
     if not path.exists():
-        raise CondtrackError(f"{path}: no such file or folder")
+        raise MissingInput(f"{path}: no such file or folder")
     if path.is_dir():
         return FolderSource(path, settings)
     return VideoSource(path)

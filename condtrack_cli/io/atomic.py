@@ -1,4 +1,9 @@
-"""Write a file (or a folder) completely or not at all: build it beside its final path, rename it at the end."""
+"""Write a file (or a folder) completely or not at all: build it beside its final path, rename it at the end.
+
+Interrupted (Ctrl-C, SIGTERM), nothing is left: a file is written by one call
+during which the signal is held (:func:`condtrack_cli.interrupts.held_signals`)
+and then discarded; a staging folder is deleted as the interrupt unwinds.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +15,7 @@ from pathlib import Path
 from typing import Iterator
 
 from condtrack_cli.errors import CondtrackError
+from condtrack_cli.interrupts import held_signals
 
 
 def _umask() -> int:
@@ -32,12 +38,14 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         raise CondtrackError(f"{path}: cannot write in '{folder}' ({error.strerror})") from None
     os.close(handle)
     temporary = Path(temporary)
-    try:
-        yield temporary
-        os.chmod(temporary, 0o666 & ~_umask())  # mkstemp makes 0600; an output gets the usual permissions
-        os.replace(temporary, path)
-    finally:
-        temporary.unlink(missing_ok=True)
+    with held_signals() as held:  # a stop signal during the write: the file is discarded, then the signal acts
+        try:
+            yield temporary
+            if not held.received:
+                os.chmod(temporary, 0o666 & ~_umask())  # mkstemp makes 0600; an output gets the usual permissions
+                os.replace(temporary, path)
+        finally:
+            temporary.unlink(missing_ok=True)
 
 
 @contextlib.contextmanager
@@ -60,7 +68,8 @@ def staging_folder(path: str | Path) -> Iterator[Path]:
     try:
         yield staging
     finally:
-        shutil.rmtree(staging, ignore_errors=True)
+        with held_signals():  # a second Ctrl-C does not stop the clean-up halfway
+            shutil.rmtree(staging, ignore_errors=True)
 
 
 def publish(built: Path, path: str | Path) -> None:
@@ -73,3 +82,21 @@ def publish(built: Path, path: str | Path) -> None:
         os.replace(built, path)
     except OSError as error:
         raise CondtrackError(f"{path}: cannot put the output in place ({error.strerror})") from None
+
+
+def check_writable(path: str | Path) -> None:
+    """Refuse ``path`` before any work when its folder is missing or no file can be created in it.
+
+    Tried, not guessed from permissions (root passes every permission check,
+    and a read-only file system fails none): a temporary file is created and
+    removed.
+    """
+    path = Path(path)
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as error:
+        raise CondtrackError(f"{path}: cannot write in '{folder}' ({error.strerror})") from None

@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 
 from condtrack_cli import SCHEMA_VERSION
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, MissingInput
 from condtrack_cli.io.formats import is_hdf5, track_format
 from condtrack_cli.io.write import CSV_COLUMNS
 from condtrack_cli.registry import BUILTIN_METHOD_CODES, method_codes
@@ -119,7 +119,7 @@ def read_tracks(path: str | Path) -> tuple[Tracks, dict[str, Any]]:
     """Read a .csv, .h5 or .hdf5 track file; CondtrackError naming the file on any problem."""
     path = Path(path)
     if not path.is_file():
-        raise CondtrackError(f"{path}: no such file")
+        raise MissingInput(f"{path}: no such file")
     return _read_csv(path) if track_format(path) == "csv" else _read_hdf5(path)
 
 

@@ -1,0 +1,53 @@
+"""Queries CSV parsing: BOM, integer ids and frames read exactly (issue 16 items 5, 6)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.queries import read_queries
+from condtrack_cli.types import SequenceInfo
+
+INFO = SequenceInfo("clip", 64, 48, 10, 0.0)
+
+
+def _read(tmp_path, text: str, encoding: str = "utf-8"):
+    path = tmp_path / "q.csv"
+    path.write_bytes(text.encode(encoding))
+    return read_queries(path, INFO)
+
+
+@pytest.mark.parametrize("text", ["point_id,frame,x,y\n7,1,2,3\n5,0,4,5\n", "frame,x,y,point_id\n1,2,3,7\n0,4,5,5\n"])
+def test_a_byte_order_mark_is_ignored(tmp_path, text):
+    queries = _read(tmp_path, text, "utf-8-sig")
+    assert queries.point_id.tolist() == [5, 7] and queries.frame.tolist() == [0, 1]
+
+
+@pytest.mark.parametrize("big", [2**53 + 1, 2**63 - 1, -(2**63)])
+def test_point_ids_are_read_exactly(tmp_path, big):
+    queries = _read(tmp_path, f"point_id,frame,x,y\n{big},0,2,3\n1,0,4,5\n")
+    assert big in queries.point_id.tolist()
+
+
+@pytest.mark.parametrize(
+    "cell, message",
+    [
+        ("1e20", "outside the 64-bit integer range"),
+        ("9223372036854775808", "outside the 64-bit integer range"),
+        ("2.5", "not a whole number"),
+        ("nan", "not a whole number"),
+        ("seven", "not a number"),
+    ],
+)
+def test_bad_point_ids_are_refused_naming_file_and_row(tmp_path, cell, message):
+    with pytest.raises(CondtrackError) as error:
+        _read(tmp_path, f"point_id,frame,x,y\n1,0,2,3\n{cell},0,4,5\n")
+    text = str(error.value)
+    assert "q.csv" in text and "row 3, column 'point_id'" in text and message in text and "\n" not in text
+
+
+def test_whole_numbers_written_as_decimals_are_accepted(tmp_path):
+    queries = _read(tmp_path, "point_id,frame,x,y\n3.0,2.0,2,3\n1e3,0,4,5\n")
+    assert queries.point_id.tolist() == [3, 1000] and queries.frame.tolist() == [2, 0]
+    assert queries.point_id.dtype == np.int64
