@@ -5,6 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import cv2
+import signal
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -94,3 +96,9 @@ def render_pair(image: np.ndarray, field, side: int, noise: float, seed: int) ->
         sampled = ndimage.map_coordinates(image, positions[:, ::-1].T, order=3).reshape(side, side)
         frames.append(np.clip(np.round(sampled + rng.normal(0, noise, sampled.shape)), 0, 255).astype(np.float32))
     return frames[0], frames[1]
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` for a child that is sent Ctrl-C: a test run started as a background job
+    (``make test &``) inherits SIGINT ignored, and Python then installs no KeyboardInterrupt handler."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

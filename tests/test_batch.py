@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import pytest
+from conftest import default_sigint
 
 from condtrack_cli.batch import MANIFEST, output_names, parse_shard, shard
 from condtrack_cli.errors import CondtrackError
@@ -126,9 +127,12 @@ def test_killed_batch_resumes_with_skip_existing_and_does_each_input_once(tmp_pa
     out_dir = tmp_path / "tracks"
     args = ["track", *clips, "-m", "cnlf", "--out-dir", str(out_dir), "--format", "csv", "--skip-existing"]
     process = subprocess.Popen([sys.executable, "-c", "from condtrack_cli.cli import main; main()", *args],
-                               stderr=subprocess.PIPE, text=True)
-    while "[1/4]" not in process.stderr.readline():  # the first input is done
-        pass
+                               preexec_fn=default_sigint, stderr=subprocess.PIPE, text=True)
+    for line in process.stderr:  # until the first input is done
+        if "[1/4]" in line:
+            break
+    else:
+        pytest.fail(f"the batch ended before its first input was done (exit {process.wait()})")
     process.send_signal(signal.SIGTERM)
     _, stderr = process.communicate(timeout=120)
     assert process.returncode == 143, stderr
@@ -163,7 +167,7 @@ def _batch_signal_run(clips: list[str], out_dir: Path, sig: int) -> tuple[int, s
     process = subprocess.Popen(
         [sys.executable, "-c", "from condtrack_cli.cli import main; main()", "track", *clips, "-m", "cnlf",
          "--out-dir", str(out_dir), "-j", "2"],
-        stderr=subprocess.PIPE, text=True,
+        preexec_fn=default_sigint, stderr=subprocess.PIPE, text=True,
     )
     for line in process.stderr:  # until the first input is reported done
         if "[1/" in line:

@@ -15,7 +15,7 @@ import pytest
 from click.testing import CliRunner
 
 from condtrack_cli.cli import cli
-from conftest import SAMPLES
+from conftest import SAMPLES, default_sigint
 from test_cli import run_cli
 
 SAMPLE = SAMPLES / "occlusion"
@@ -90,7 +90,7 @@ def test_interrupt_exits_130_and_leaves_nothing(tmp_path):
     out = tmp_path / "out.h5"
     process = subprocess.Popen(
         [sys.executable, "-c", "from condtrack_cli.cli import main; main()", "track", str(SAMPLE), "-o", str(out)],
-        stderr=subprocess.PIPE, text=True,
+        preexec_fn=default_sigint, stderr=subprocess.PIPE, text=True,
     )
     process.stderr.readline()  # the first progress (or warning) line: tracking has started
     process.send_signal(signal.SIGINT)

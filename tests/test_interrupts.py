@@ -23,6 +23,7 @@ import time
 import cv2
 import numpy as np
 import pytest
+from conftest import default_sigint
 
 from condtrack_cli.io.read import read_tracks
 
@@ -56,7 +57,7 @@ def _size(paths: list) -> int:
 def _interrupt_when(pattern: str, min_bytes: int, out_dir, args: list[str], signum: int) -> subprocess.CompletedProcess:
     """Run ``condtrack track``; send ``signum`` once a file matching ``pattern`` in ``out_dir`` has ``min_bytes``."""
     process = subprocess.Popen([sys.executable, "-m", "condtrack_cli", "track", *args, "-q"],
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                               stdout=subprocess.PIPE, preexec_fn=default_sigint, stderr=subprocess.PIPE, text=True)
     while _size(list(out_dir.glob(pattern))) < min_bytes:
         assert process.poll() is None, f"the run ended before {pattern} had {min_bytes} bytes: {process.stderr.read()}"
         time.sleep(0.002)
