@@ -32,7 +32,9 @@ from condtrack_cli import registry
 from condtrack_cli.config import Config
 from condtrack_cli.filters import kalman
 from condtrack_cli.filters.base import Tracker
-from condtrack_cli.filters.reference import InitialStateSettings, MeasuredFilterSettings, ReferenceMatcher
+from condtrack_cli.filters.reference import (
+    GatedMeasurement, InitialStateSettings, MeasuredFilterSettings, ReferenceMatcher,
+)
 from condtrack_cli.motion.local import LocalField, LocalMotion
 from condtrack_cli.motion.robust import displacement, jacobian, state_noise
 from condtrack_cli.registry import register
@@ -68,8 +70,12 @@ def local_dynamics(field: LocalField, xy: np.ndarray) -> tuple[np.ndarray, np.nd
 class CLFSettings(MeasuredFilterSettings):
     """The CLF's settings: those of every filter that measures a reference patch, and its dynamics."""
 
-    dynamics: Literal["local", "global"] = Field(
-        "local", description="motion predicting the gate: local (window around the point) or global (paper's CLF)"
+    dynamics: Literal["select", "local", "global"] = Field(
+        "select",
+        description="motion predicting the gate: global (paper's CLF), local (window around the point) or select (per point)",
+    )
+    select_margin: float = Field(
+        1.0, ge=0, description="select: the local motion predicts a point while it misses the measurement by this much less (px)"
     )
 
 
@@ -118,26 +124,46 @@ class CLFTracker(MDRTracker):
                  reference: ReferenceMatcher | None = None):
         super().__init__(settings, queries, info, config)
         self.reference = reference or ReferenceMatcher(build_stage(config, "measure"), settings, len(queries))
-        self.local = LocalMotion(self.motion_settings) if settings.dynamics == "local" else None
-
-    def _predict(self, index: np.ndarray, prev: Frame, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
-        if self.local is None:
-            return super()._predict(index, prev, frame)
-        x = self.xy[index]
-        return kalman.predict(x, self.cov[index], *local_dynamics(self.local.field(prev, frame), x))
+        self.local = LocalMotion(self.motion_settings) if settings.dynamics != "global" else None
+        self.on_local = np.full(len(queries), settings.dynamics != "global")  #: (P,) predicted by the local motion
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         super()._start(index, frame)
+        self.on_local[index] = self.local is not None
         self.reference.start(index, frame, self.xy[index])
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
         x_prev, found_before = self.xy[index].copy(), self.visible[index].copy()
-        x_pred, sigma_pred = self._predict(index, prev, frame)
+        x_global, sigma_global = self._predict(index, prev, frame)
+        x_pred, sigma_pred = x_global, sigma_global
+        if self.local is not None:
+            x_local, sigma_local = kalman.predict(
+                x_prev, self.cov[index], *local_dynamics(self.local.field(prev, frame), x_prev)
+            )
+            local = self.on_local[index]
+            x_pred = np.where(local[:, None], x_local, x_global)
+            sigma_pred = np.where(local[:, None, None], sigma_local, sigma_global)
         measured = self.reference.measure_in_gate(index, frame, x_pred, sigma_pred)
+        if self.settings.dynamics == "select":
+            self._choose(index, measured, x_global, x_local)
         self.xy[index], self.cov[index] = kalman.update(x_pred, sigma_pred, measured.z, measured.R_used, measured.valid)
         self.visible[index] = measured.valid
         self.z[index], self.R[index] = measured.z, measured.R
         self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
+
+    def _choose(self, index: np.ndarray, measured: GatedMeasurement, x_global: np.ndarray, x_local: np.ndarray) -> None:
+        """``select``: which motion predicts points ``index`` next frame, from this frame's miss of each.
+
+        A point found this frame goes to the local motion when the local prediction
+        x_local (n, 2) fell at least ``select_margin`` px closer to its measurement than
+        the global one x_global (n, 2), else to the global motion; a point not found
+        keeps its choice (an occluded point's window moves with the occluder, so it
+        must not switch to it while covered).
+        """
+        miss_global = np.linalg.norm(measured.z - x_global, axis=1)
+        miss_local = np.linalg.norm(measured.z - x_local, axis=1)
+        closer = miss_global - miss_local >= self.settings.select_margin
+        self.on_local[index[measured.valid]] = closer[measured.valid]
 
 
 @register("filter", "mdr", MDRSettings, "MDR baseline: the global robust motion alone, no measurement")
