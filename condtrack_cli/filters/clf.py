@@ -3,16 +3,20 @@
 Per frame, for all started points at once:
 - model: the robust motion between frames k-1 and k gives A_k, b_k of eq. (1)
   (A_k the Jacobian of x + U(x), b_k = x + U(x) - A_k x) and Q_k (§5.1).
-  ``dynamics: local`` (default; a departure, docs/departures.md): U and Q_k are
-  the local robust motion of the window around the point (``motion/local.py``,
-  the CNLF's eq. 5), A_k its Jacobian by central differences over one node
-  spacing. ``dynamics: global`` (the paper's CLF, and MDR): U is the global
-  robust fit, exact for the affine model and linearised for the quadratic one,
-  Q_k ``state_noise``. Measured (clf, realeval.py protocol): the global
-  quadratic model cannot follow the parallax of a driving scene; its one-step
-  prediction misses the point by a median 3-4 px on kt3dmoseg_seq028, where
-  the SSD surface of the weakly textured points is uninformative and the point
-  coasts on that prediction;
+  ``dynamics: global`` (the paper's CLF, and MDR): U is the global robust fit,
+  exact for the affine model and linearised for the quadratic one, Q_k
+  ``state_noise``. ``dynamics: local``: U and Q_k are the local robust motion
+  of the window around the point (``motion/local.py``, the CNLF's eq. 5), A_k
+  its Jacobian by central differences over one node spacing. ``dynamics:
+  select`` (default; a departure, docs/departures.md): each point starts on
+  the local motion; after each frame where it is found, it stays on (or goes
+  to) the local motion when the local prediction fell ``select_margin`` px
+  closer to its measurement than the global one, else to the global motion;
+  a point not found keeps its choice (``CLFTracker._choose``). The global
+  quadratic model cannot follow the parallax of a driving scene (its
+  one-step prediction misses by a median 3-4 px on kt3dmoseg_seq028, where
+  the weakly textured points, with an uninformative SSD surface, coast on
+  it); the local motion alone drags a covered point along with its occluder;
 - prediction: x_{k|k-1} = A_k x + b_k, Sigma_{k|k-1} = A_k Sigma A_k^T + Q_k;
 - measurement: SSD match of the reference patch in the validation gate (§5.2),
   R_k from the correlation surface (eqs. 8-10);
