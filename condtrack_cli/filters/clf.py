@@ -79,7 +79,7 @@ class CLFSettings(MeasuredFilterSettings):
         description="motion predicting the gate: global (paper's CLF), local (window around the point) or select (per point)",
     )
     select_margin: float = Field(
-        0.25, ge=0, description="select: the local motion predicts a point while it misses the measurement by this much less (px)"
+        0.5, ge=0, description="select: the local motion predicts a point while it misses the measurement by this much less (px)"
     )
 
 
