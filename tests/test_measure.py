@@ -186,7 +186,7 @@ def test_vectorised_search_equals_per_point_reference():
     templates = extract_templates(frame0, xy, 11)
     predicted = xy + rng.uniform(-3, 3, xy.shape)
     wide = np.repeat(100.0 * np.eye(2)[None], len(xy), axis=0)  # the ellipse contains the whole square
-    settings = SSDSettings()
+    settings = SSDSettings(cost="ssd")
     m = measure(frame1, templates, predicted, wide, settings, 2.0)
     h = settings.search_max
     offsets = np.arange(-h, h + 1)
@@ -234,9 +234,9 @@ def test_normalised_cost_ignores_a_gain_and_offset_change():
     gate = np.repeat(4.0 * np.eye(2)[None], len(xy), axis=0)
     templates = extract_templates(frame0, xy, 11)
     brighter = 128 + 1.3 * (frame1 - 128) + 20
-    plain = measure(brighter, templates, predicted, gate, SSDSettings(), 2.0)
+    plain = measure(brighter, templates, predicted, gate, SSDSettings(cost="ssd"), 2.0)
     normalised = measure(brighter, templates, predicted, gate, SSDSettings(cost="normalised"), 2.0)
-    same = measure(frame1, templates, predicted, gate, SSDSettings(), 2.0)
+    same = measure(frame1, templates, predicted, gate, SSDSettings(cost="ssd"), 2.0)
     assert np.median(np.linalg.norm(normalised.z - truth, axis=1)) < 0.15
     assert normalised.informative.mean() > 0.75
     assert np.median(plain.residual) > 4 * np.median(same.residual)
@@ -259,7 +259,10 @@ def test_points_at_and_beyond_the_frame_border():
 # --- occlusion, ambiguity and the gate ---------------------------------------------------------
 
 
-def test_occluded_points_get_infinite_R():
+@pytest.mark.parametrize(("cost", "least_infinite"), [("ssd", 1.0), ("zero_mean", 0.95)])
+def test_occluded_points_get_infinite_R(cost, least_infinite):
+    """Measured, 73 points under an unrelated texture: all infinite with the SSD, 71 with zero_mean
+    (removing the mean lets two of them match into the texture)."""
     rng = np.random.default_rng(5)
     frame0, frame1, shift = downsampled_pair("camera.png", (2, 1), 2, 2.0, rng)
     gravel = load_asset("gravel.png").astype(np.float32)
@@ -271,9 +274,9 @@ def test_occluded_points_get_infinite_R():
     assert inside.sum() >= 10 and apart.sum() >= 30
     gate = np.repeat(4.0 * np.eye(2)[None], len(xy), axis=0)
     templates = extract_templates(frame0, xy, 11)
-    occluded = measure(occluded_frame, templates, xy + shift, gate, SSDSettings(), 2.0)
-    clear = measure(frame1, templates, xy + shift, gate, SSDSettings(), 2.0)
-    assert is_infinite(occluded.R[inside]).all() and clear.informative[inside].mean() > 0.7
+    occluded = measure(occluded_frame, templates, xy + shift, gate, SSDSettings(cost=cost), 2.0)
+    clear = measure(frame1, templates, xy + shift, gate, SSDSettings(cost=cost), 2.0)
+    assert is_infinite(occluded.R[inside]).mean() >= least_infinite and clear.informative[inside].mean() > 0.7
     for field in ("z", "R", "residual", "informative"):  # points whose search never sees the occluder: unchanged
         np.testing.assert_array_equal(getattr(occluded, field)[apart], getattr(clear, field)[apart])
 

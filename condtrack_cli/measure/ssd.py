@@ -395,7 +395,7 @@ def _ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, 
     mean-free). 'normalised': after giving it the template's mean and contrast,
     sum [T' - a I']^2 = 2 sum T'^2 (1 - rho) (a = |T'| / |I'|, rho their
     correlation; a flat frame patch has rho = 0). Both from the window sums of
-    I, I^2 and I T' (three inverse transforms); see :func:`matching_cost`.
+    I and I^2 (cumulative sums) and of I T' (FFT); see :func:`matching_cost`.
     """
     height, width = gray.shape
     t = templates.shape[1]
@@ -415,15 +415,14 @@ def _ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, 
         tmpl -= mean
         energy = (tmpl * tmpl).sum(axis=(1, 2))[:, None, None]  # sum T'^2
         patch = image.take(rows[:, :, None] * width + cols[:, None, :]) - mean
-        squares = _spectrum(patch * patch, length) * box  # sum_y I(z + y)^2
-        patch_spectrum = _spectrum(patch, length)
-        cross = patch_spectrum * _spectrum(tmpl[:, ::-1, ::-1], length)  # sum_y T'(y) I(z + y)
+        cross = _spectrum(patch, length) * _spectrum(tmpl[:, ::-1, ::-1], length)  # sum_y T'(y) I(z + y)
         if cost == "ssd":
+            squares = _spectrum(patch * patch, length) * box  # sum_y I(z + y)^2
             window = fft.irfft2(squares - 2.0 * cross, s=(length, length), workers=fft_workers())[:, kept, kept]
             out[start:stop] = np.maximum(window + energy, 0.0)  # eq. (6)
             continue
-        sums = fft.irfft2(np.stack([squares, patch_spectrum * box, cross]), s=(length, length), workers=fft_workers())
-        sum_sq, sum_i, sum_it = sums[:, :, kept, kept]
+        sum_it = fft.irfft2(cross, s=(length, length), workers=fft_workers())[:, kept, kept]
+        sum_i, sum_sq = _window_sums(patch, t, g), _window_sums(patch * patch, t, g)
         spread = np.maximum(sum_sq - sum_i * sum_i / (t * t), 0.0)  # sum I'^2
         if cost == "zero_mean":
             out[start:stop] = np.maximum(spread - 2.0 * sum_it + energy, 0.0)
@@ -432,6 +431,13 @@ def _ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, 
             rho = np.where(spread > 0, sum_it / np.sqrt(energy * spread), 0.0)
         out[start:stop] = 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
     return out
+
+
+def _window_sums(values: np.ndarray, t: int, g: int) -> np.ndarray:
+    """(P, g, g) sums of (P, g + t - 1, g + t - 1) ``values`` over each t x t window, by cumulative sums."""
+    total = np.zeros((values.shape[0], values.shape[1] + 1, values.shape[2] + 1))
+    np.cumsum(np.cumsum(values, axis=1), axis=2, out=total[:, 1:, 1:])
+    return total[:, t:, t:] - total[:, :g, t:] - total[:, t:, :g] + total[:, :g, :g]
 
 
 def matching_cost(templates: np.ndarray, patches: np.ndarray, cost: str) -> np.ndarray:
