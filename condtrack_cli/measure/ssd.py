@@ -65,6 +65,7 @@ from scipy import fft, ndimage, special, stats
 
 from condtrack_cli.config import StageSettings
 from condtrack_cli.registry import register
+from condtrack_cli.threads import fft_workers
 
 #: Points per FFT batch: bounds the temporary arrays (about 70 kB per point at the default sizes).
 _CHUNK = 512
