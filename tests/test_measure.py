@@ -18,6 +18,7 @@ from condtrack_cli.measure.ssd import (
     SSDSettings,
     estimate_noise_sigma,
     extract_templates,
+    matching_cost,
     measure,
     response_covariance,
 )
@@ -185,7 +186,7 @@ def test_vectorised_search_equals_per_point_reference():
     templates = extract_templates(frame0, xy, 11)
     predicted = xy + rng.uniform(-3, 3, xy.shape)
     wide = np.repeat(100.0 * np.eye(2)[None], len(xy), axis=0)  # the ellipse contains the whole square
-    settings = SSDSettings()
+    settings = SSDSettings(cost="ssd")
     m = measure(frame1, templates, predicted, wide, settings, 2.0)
     h = settings.search_max
     offsets = np.arange(-h, h + 1)
@@ -201,6 +202,45 @@ def test_vectorised_search_equals_per_point_reference():
         assert np.abs(m.z[p] - [cx + offsets[u], cy + offsets[v]]).max() <= 0.5 + 1e-9  # z within the minimum's cell
         region = frame1[cy - h - 5 : cy + h + 6, cx - h - 5 : cx + h + 6]
         np.testing.assert_allclose(cv2.matchTemplate(region, templates[p], cv2.TM_SQDIFF), ssd, rtol=1e-3, atol=1.0)
+
+
+def test_normalised_cost_surface_equals_the_per_pair_cost():
+    """The least normalised cost over the search square equals :func:`matching_cost` taken patch by patch."""
+    rng = np.random.default_rng(5)
+    frame0, frame1, _ = downsampled_pair("camera.png", (3, 2), 2, 2.0, rng)
+    xy = np.rint(corners(frame0, 24)[:40])
+    templates = extract_templates(frame0, xy + rng.uniform(-0.5, 0.5, xy.shape), 11)
+    settings = SSDSettings(cost="normalised", search_min=2)
+    m = measure(frame1, templates, xy, np.repeat(0.01 * np.eye(2)[None], len(xy), axis=0), settings, 2.0)
+    offsets = np.stack(np.meshgrid(np.arange(-2, 3), np.arange(-2, 3)), -1).reshape(-1, 2)  # the 5 x 5 square
+    costs = np.stack([matching_cost(templates, extract_templates(frame1, xy + o, 11), "normalised") for o in offsets])
+    np.testing.assert_allclose(m.residual, costs.min(axis=0), rtol=1e-6, atol=1e-3)
+    flat = np.full_like(templates[:1], 7.0)
+    assert matching_cost(templates[:1], flat, "normalised")[0] == pytest.approx(2 * ((templates[0] - templates[0].mean()) ** 2).sum())
+
+
+def test_normalised_cost_ignores_a_gain_and_offset_change():
+    """Frame k at contrast 1.3 and +20 grey levels: the normalised match stays within 0.15 px (median)
+    and informative, while the SSD's residuals grow several times and its matches degrade.
+
+    Measured: normalised median error 0.08 px, 92% informative (as without the change); SSD median
+    error 0.29 px, 71% informative, median residual 5.9x that without the change.
+    """
+    rng = np.random.default_rng(6)
+    frame0, frame1, shift = downsampled_pair("camera.png", (1, -3), 4, 2.0, rng)
+    xy = corners(frame0, 16)
+    truth = xy + shift
+    predicted = truth + rng.uniform(-2, 2, truth.shape)
+    gate = np.repeat(4.0 * np.eye(2)[None], len(xy), axis=0)
+    templates = extract_templates(frame0, xy, 11)
+    brighter = 128 + 1.3 * (frame1 - 128) + 20
+    plain = measure(brighter, templates, predicted, gate, SSDSettings(cost="ssd"), 2.0)
+    normalised = measure(brighter, templates, predicted, gate, SSDSettings(cost="normalised"), 2.0)
+    same = measure(frame1, templates, predicted, gate, SSDSettings(cost="ssd"), 2.0)
+    assert np.median(np.linalg.norm(normalised.z - truth, axis=1)) < 0.15
+    assert normalised.informative.mean() > 0.75
+    assert np.median(plain.residual) > 4 * np.median(same.residual)
+    assert plain.informative.mean() < normalised.informative.mean() - 0.1
 
 
 def test_points_at_and_beyond_the_frame_border():
@@ -219,7 +259,10 @@ def test_points_at_and_beyond_the_frame_border():
 # --- occlusion, ambiguity and the gate ---------------------------------------------------------
 
 
-def test_occluded_points_get_infinite_R():
+@pytest.mark.parametrize(("cost", "least_infinite"), [("ssd", 1.0), ("zero_mean", 0.95)])
+def test_occluded_points_get_infinite_R(cost, least_infinite):
+    """Measured, 73 points under an unrelated texture: all infinite with the SSD, 71 with zero_mean
+    (removing the mean lets two of them match into the texture)."""
     rng = np.random.default_rng(5)
     frame0, frame1, shift = downsampled_pair("camera.png", (2, 1), 2, 2.0, rng)
     gravel = load_asset("gravel.png").astype(np.float32)
@@ -231,9 +274,9 @@ def test_occluded_points_get_infinite_R():
     assert inside.sum() >= 10 and apart.sum() >= 30
     gate = np.repeat(4.0 * np.eye(2)[None], len(xy), axis=0)
     templates = extract_templates(frame0, xy, 11)
-    occluded = measure(occluded_frame, templates, xy + shift, gate, SSDSettings(), 2.0)
-    clear = measure(frame1, templates, xy + shift, gate, SSDSettings(), 2.0)
-    assert is_infinite(occluded.R[inside]).all() and clear.informative[inside].mean() > 0.7
+    occluded = measure(occluded_frame, templates, xy + shift, gate, SSDSettings(cost=cost), 2.0)
+    clear = measure(frame1, templates, xy + shift, gate, SSDSettings(cost=cost), 2.0)
+    assert is_infinite(occluded.R[inside]).mean() >= least_infinite and clear.informative[inside].mean() > 0.7
     for field in ("z", "R", "residual", "informative"):  # points whose search never sees the occluder: unchanged
         np.testing.assert_array_equal(getattr(occluded, field)[apart], getattr(clear, field)[apart])
 

@@ -108,5 +108,5 @@ class ReferenceMatcher:
             return
         patches = self.measure.templates(frame.gray, x_post[candidates])
         before = self.measure.templates(prev.gray, x_prev[candidates])
-        steady = ((patches - before) ** 2).sum(axis=(1, 2)) <= s.update_abruptness * measured.residual[candidates]
+        steady = self.measure.cost(patches, before) <= s.update_abruptness * measured.residual[candidates]
         self.templates[index[candidates[steady]]] = patches[steady]

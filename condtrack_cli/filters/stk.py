@@ -21,7 +21,7 @@ from condtrack_cli.types import Frame, Queries, SequenceInfo
 class STKSettings(StageSettings):
     frame_windows = ("win_size",)
     win_size: int = Field(21, ge=3, description="side of the Lucas-Kanade window (px)")
-    levels: int = Field(3, ge=1, le=8, description="pyramid levels (OpenCV maxLevel = levels - 1)")
+    levels: int = Field(4, ge=1, le=8, description="pyramid levels (OpenCV maxLevel = levels - 1; 4: OpenCV maxLevel 3)")
     max_iterations: int = Field(30, ge=1, description="iterations per level")
     epsilon: float = Field(0.01, gt=0, description="stop when an iteration moves the point less than this (px)")
     fb_threshold: float = Field(1.0, gt=0, description="forward-backward distance above which a point is not visible (px)")

@@ -107,6 +107,10 @@ class SSDSettings(StageSettings):
     ambiguity_ratio: float = Field(
         0.5, gt=0, lt=1, description="a second minimum with at least this fraction of the peak's response: R infinite"
     )
+    cost: Literal["ssd", "zero_mean", "normalised"] = Field(
+        "zero_mean",
+        description="matching cost: ssd (eq. 6), zero_mean or normalised (SSD after matching the patch's mean, and contrast)",
+    )
     r_floor: float = Field(1 / 12, gt=0, description="variance added to R_k on each axis (px^2): a grid cell's spread")
 
     @field_validator("template", "support")
@@ -378,15 +382,21 @@ def _spectrum(values: np.ndarray, length: int) -> np.ndarray:
     return fft.rfft2(values, s=(length, length), workers=fft_workers())
 
 
-def _ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, reach: int) -> np.ndarray:
+def _ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, reach: int,
+                  cost: str = "ssd") -> np.ndarray:
     """(P, G, G) float64 r_k (eq. 6) at integer candidates centres + (dx, dy), |dx|, |dy| <= reach, G = 2 reach + 1.
 
-    Element [p, i, j] is the SSD between templates[p] and the frame patch centred on
-    (centres[p, 0] + j - reach, centres[p, 1] + i - reach), frame border replicated.
-    Computed as sum I^2 - 2 sum I T + sum T^2, both window sums as FFT convolutions
-    (with a box and with the flipped template) sharing one inverse transform, after
-    removing each template's mean from both images (the SSD is unchanged, the
-    cancellation smaller).
+    Element [p, i, j] is the matching cost between templates[p] and the frame patch
+    centred on (centres[p, 0] + j - reach, centres[p, 1] + i - reach), frame border
+    replicated. ``cost`` 'ssd': the SSD, sum I^2 - 2 sum I T + sum T^2, both
+    window sums as FFT convolutions (with a box and with the flipped template)
+    sharing one inverse transform, after removing each template's mean from both
+    images (the SSD is unchanged, the cancellation smaller). 'zero_mean': the SSD
+    after giving the frame patch the template's mean, sum [T' - I']^2 (T', I'
+    mean-free). 'normalised': after giving it the template's mean and contrast,
+    sum [T' - a I']^2 = 2 sum T'^2 (1 - rho) (a = |T'| / |I'|, rho their
+    correlation; a flat frame patch has rho = 0). Both from the window sums of
+    I and I^2 (cumulative sums) and of I T' (FFT); see :func:`matching_cost`.
     """
     height, width = gray.shape
     t = templates.shape[1]
@@ -396,6 +406,7 @@ def _ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, 
     box = _spectrum(np.ones((1, t, t)), length)
     image = np.ascontiguousarray(gray).ravel()
     out = np.empty((len(templates), g, g))
+    kept = slice(t - 1, t - 1 + g)
     for start in range(0, len(templates), _CHUNK):
         stop = min(start + _CHUNK, len(templates))
         rows = np.clip(centres[start:stop, 1, None] + span, 0, height - 1)
@@ -403,13 +414,47 @@ def _ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, 
         tmpl = templates[start:stop].astype(np.float64)
         mean = tmpl.mean(axis=(1, 2), keepdims=True)
         tmpl -= mean
+        energy = (tmpl * tmpl).sum(axis=(1, 2))[:, None, None]  # sum T'^2
         patch = image.take(rows[:, :, None] * width + cols[:, None, :]) - mean
-        spectrum = _spectrum(patch * patch, length)
-        spectrum *= box  # sum_y I(z + y)^2
-        spectrum += _spectrum(patch, length) * _spectrum(-2.0 * tmpl[:, ::-1, ::-1], length)  # -2 sum_y T I(z + y)
-        window = fft.irfft2(spectrum, s=(length, length), workers=fft_workers())[:, t - 1 : t - 1 + g, t - 1 : t - 1 + g]
-        out[start:stop] = np.maximum(window + (tmpl * tmpl).sum(axis=(1, 2))[:, None, None], 0.0)  # eq. (6)
+        cross = _spectrum(patch, length) * _spectrum(tmpl[:, ::-1, ::-1], length)  # sum_y T'(y) I(z + y)
+        if cost == "ssd":
+            squares = _spectrum(patch * patch, length) * box  # sum_y I(z + y)^2
+            window = fft.irfft2(squares - 2.0 * cross, s=(length, length), workers=fft_workers())[:, kept, kept]
+            out[start:stop] = np.maximum(window + energy, 0.0)  # eq. (6)
+            continue
+        sum_it = fft.irfft2(cross, s=(length, length), workers=fft_workers())[:, kept, kept]
+        sum_i, sum_sq = _window_sums(patch, t, g), _window_sums(patch * patch, t, g)
+        spread = np.maximum(sum_sq - sum_i * sum_i / (t * t), 0.0)  # sum I'^2
+        if cost == "zero_mean":
+            out[start:stop] = np.maximum(spread - 2.0 * sum_it + energy, 0.0)
+            continue
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rho = np.where(spread > 0, sum_it / np.sqrt(energy * spread), 0.0)
+        out[start:stop] = 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
     return out
+
+
+def _window_sums(values: np.ndarray, t: int, g: int) -> np.ndarray:
+    """(P, g, g) sums of (P, g + t - 1, g + t - 1) ``values`` over each t x t window, by cumulative sums."""
+    total = np.zeros((values.shape[0], values.shape[1] + 1, values.shape[2] + 1))
+    np.cumsum(np.cumsum(values, axis=1), axis=2, out=total[:, 1:, 1:])
+    return total[:, t:, t:] - total[:, :g, t:] - total[:, t:, :g] + total[:, :g, :g]
+
+
+def matching_cost(templates: np.ndarray, patches: np.ndarray, cost: str) -> np.ndarray:
+    """(M,) the ``cost`` of :func:`_ssd_surfaces` between aligned (M, t, t) ``templates`` and ``patches``."""
+    a = np.asarray(templates, np.float64)
+    b = np.asarray(patches, np.float64)
+    if cost == "ssd":
+        return ((a - b) ** 2).sum(axis=(1, 2))
+    a = a - a.mean(axis=(1, 2), keepdims=True)
+    b = b - b.mean(axis=(1, 2), keepdims=True)
+    if cost == "zero_mean":
+        return ((a - b) ** 2).sum(axis=(1, 2))
+    energy, spread = (a * a).sum(axis=(1, 2)), (b * b).sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = np.where(spread > 0, (a * b).sum(axis=(1, 2)) / np.sqrt(energy * spread), 0.0)
+    return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
 
 
 def _shift(window: np.ndarray, offset: np.ndarray) -> np.ndarray:
@@ -424,21 +469,32 @@ def _shift(window: np.ndarray, offset: np.ndarray) -> np.ndarray:
     return mid + np.where(fy >= 0, fy * (down - mid), -fy * (up - mid))
 
 
-def _refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray) -> np.ndarray:
+def _refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str = "ssd") -> np.ndarray:
     """(P, 2) sub-pixel z_k: the continuous minimum of eq. (6) within +-0.5 px of the integer minimum ``start``.
 
     Gauss-Newton on r(z) = sum_y [T(y) - I_k(z + y)]^2 with I_k bilinear (border
     replicated) and its gradient by central differences, ``_REFINE_STEPS`` steps,
     each clamped so that z stays within the integer minimum's cell. The normal
     matrix is damped by 1e-3 of its trace so that the step along an edge (no
-    information) stays small.
+    information) stays small. Other ``cost``: that of :func:`matching_cost`, the
+    frame patch given the template's mean (and contrast) at each step (held
+    fixed within a step).
     """
     t = templates.shape[1]
     window = extract_templates(gray, start, t + 4).astype(np.float64)  # I_k at start + [-t//2 - 2, t//2 + 2]^2
     reference = templates.astype(np.float64)
+    if cost != "ssd":
+        reference = reference - reference.mean(axis=(1, 2), keepdims=True)
+        energy = (reference * reference).sum(axis=(1, 2))
     offset = np.zeros(start.shape)
     for _ in range(_REFINE_STEPS):
         moved = _shift(window, offset)  # I_k at z + [-t//2 - 1, t//2 + 1]^2
+        if cost != "ssd":
+            inner = moved[:, 1:-1, 1:-1]
+            centred = inner - inner.mean(axis=(1, 2), keepdims=True)
+            spread = (centred * centred).sum(axis=(1, 2))
+            gain = np.sqrt(energy / np.where(spread > 0, spread, np.inf))[:, None, None] if cost == "normalised" else 1.0
+            moved = (moved - inner.mean(axis=(1, 2), keepdims=True)) * gain
         gx = (moved[:, 1:-1, 2:] - moved[:, 1:-1, :-2]) / 2.0
         gy = (moved[:, 2:, 1:-1] - moved[:, :-2, 1:-1]) / 2.0
         error = reference - moved[:, 1:-1, 1:-1]
@@ -491,7 +547,7 @@ def measure(
     height, width = gray.shape
     x = centres[:, 0, None, None] + grid[None, None, :]  # (P, 1, G) candidate columns
     y = centres[:, 1, None, None] + grid[None, :, None]  # (P, G, 1) candidate rows
-    r_full = _ssd_surfaces(gray, templates, centres, reach)
+    r_full = _ssd_surfaces(gray, templates, centres, reach, settings.cost)
     r_full = np.where((x >= 0) & (x < width) & (y >= 0) & (y < height), r_full, np.inf)  # outside the frame
 
     inner = slice(half, half + 2 * largest + 1)  # the candidate offsets, |dx|, |dy| <= largest
@@ -519,7 +575,7 @@ def measure(
     residual = r_full[np.arange(count), row, col]
 
     integer = np.stack([centres[:, 0] + col - reach, centres[:, 1] + row - reach], axis=1).astype(np.float64)
-    z = _refine(gray, templates, integer)
+    z = _refine(gray, templates, integer, settings.cost)
 
     offsets = np.arange(-half, half + 1)
     rows, cols = (row[:, None] + offsets)[:, :, None], (col[:, None] + offsets)[:, None, :]
@@ -557,6 +613,10 @@ class SSDMeasure:
     def templates(self, gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """(M, t, t) float32 reference patches around (M, 2) positions of a (H, W) float32 frame."""
         return extract_templates(gray, xy, self.settings.template)
+
+    def cost(self, templates: np.ndarray, patches: np.ndarray) -> np.ndarray:
+        """(M,) :func:`matching_cost` of aligned (M, t, t) patch pairs with this stage's cost."""
+        return matching_cost(templates, patches, self.settings.cost)
 
     def noise_sigma(self, gray: np.ndarray) -> float:
         """The configured acquisition noise std, or its estimate on ``gray`` (grey levels)."""
