@@ -239,9 +239,8 @@ def _check(ok: bool, text: str) -> str:
     return f"- [{'x' if ok else ' '}] {'pass' if ok else 'FAIL'}: {text}"
 
 
-def real_video_table(work: Path, max_points: int = 300) -> list[str]:
-    """Markdown: <δ_avg of OpenCV LK and each method per shared real set, then issue 11's done-when checks."""
-    shared = REPO.parent / "shared" / "data"
+def real_video_table(work: Path, shared: Path, max_points: int = 300) -> list[str]:
+    """Markdown: <δ_avg of OpenCV LK and each method per real set of ``shared``, then issue 11's done-when checks."""
     columns = ("lk",) + VERSUS_LK_METHODS
     lines = ["| set | points | " + " | ".join(columns) + " |", "|---|---|" + "---|" * len(columns)]
     per_set = {}
@@ -318,7 +317,7 @@ def synthetic_versus_lk_table(work: Path) -> list[str]:
     return lines + ["", "Done-when checks of issue 11 (synthetic scenes):", ""] + checks
 
 
-def versus_lk_section(work: Path) -> list[str]:
+def versus_lk_section(work: Path, shared: Path = REPO.parent / "shared" / "data") -> list[str]:
     """The results.md section of issue 11: real video and synthetic scenes against OpenCV LK maxLevel 3."""
     return [
         "## Against OpenCV LK (issue 11)",
@@ -329,7 +328,7 @@ def versus_lk_section(work: Path) -> list[str]:
         "(>= 2 on the Oxford sets), at most 300 per set taken evenly; <δ_avg in the 'first' query mode; "
         "cells are <δ_avg (wall seconds). Track files: bench/out/lk11_<set>.<method>.h5.",
         "",
-    ] + real_video_table(work) + [
+    ] + real_video_table(work, shared) + [
         "",
         "Synthetic scenes of `condtrack synth` at their defaults (seed 0); track files bench/out/synth_<scene>.<method>.h5.",
         "",
@@ -363,12 +362,14 @@ def main() -> None:
                         help="folder for the queries and track files (emptied first; kept for `condtrack eval`)")
     parser.add_argument("--support", type=Path, metavar="SEQUENCE",
                         help="only print the dominant model's one-step error by support on SEQUENCE (with tracks.csv)")
+    parser.add_argument("--shared-data", type=Path, default=REPO.parent / "shared" / "data",
+                        help="folder of the real sets for the section against OpenCV LK")
     parser.add_argument("--versus-lk", action="store_true",
                         help="only print the section against OpenCV LK (issue 11); results.md is not written")
     args = parser.parse_args()
     if args.versus_lk:
         args.work.mkdir(parents=True, exist_ok=True)
-        print("\n".join(versus_lk_section(args.work)))
+        print("\n".join(versus_lk_section(args.work, args.shared_data)))
         return
     if args.support:
         print("\n".join(support_table(args.support)))
@@ -377,7 +378,7 @@ def main() -> None:
     args.work.mkdir(parents=True)
     accuracy = accuracy_table(args.max_points, args.work)
     speed = speed_table(args.work)
-    versus_lk = versus_lk_section(args.work)
+    versus_lk = versus_lk_section(args.work, args.shared_data)
     header = [
         "# condtrack benchmark",
         "",
