@@ -20,7 +20,8 @@ import cv2
 import numpy as np
 
 from condtrack_cli.frames.readers import FrameSettings, open_frames
-from condtrack_cli.types import METHODS, Queries, Tracks
+from condtrack_cli.registry import method_code
+from condtrack_cli.types import Queries, Tracks
 
 WIN_SIZE = 21
 MAX_LEVEL = 3
@@ -60,7 +61,7 @@ def opencv_lk(folder: str | Path, queries: Queries, fb_threshold: float = 1.0) -
         new = np.flatnonzero(queries.frame == k)
         xy[new, k], visible[new, k] = queries.xy[new], True
         prev = image
-    method = np.where(np.isfinite(xy[..., 0]), METHODS.index("stk"), -1).astype(np.int8)
+    method = np.where(np.isfinite(xy[..., 0]), method_code("stk"), -1).astype(np.int8)
     return Tracks(
         queries=queries, xy=xy, cov=np.full((p, f, 2, 2), np.nan), visible=visible, method=method,
         z=np.full((p, f, 2), np.nan), R=np.full((p, f, 2, 2), np.nan),
