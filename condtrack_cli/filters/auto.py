@@ -36,9 +36,12 @@ particle mean and covariance the other way. The ``method`` of each row says
 which filter produced it. The rule does not assume which filter is the more
 accurate: a better CLF wins more points through (2) and (3).
 
-Measured (python -m condtrack_cli.evaluate.bench --versus-lk, <delta_avg,
-issue 11 protocol; before = the robust-weight rule of the previous version):
-see the lead's note for issue 11 and bench/results.md.
+Measured with ``python -m condtrack_cli.evaluate.bench --versus-lk``
+(<delta_avg, issue 11 protocol, seed 0; "previous" = the robust-weight
+rule, issue 11's table): kt3dmoseg seq005 0.700 (previous 0.671; cnlf 0.703), seq009
+0.701 (0.523; cnlf 0.741), seq011 0.921 (0.867; cnlf 0.911), seq028 0.616
+(0.434; cnlf 0.668), seq059 0.777 (0.704; cnlf 0.785). Not yet within 0.01 of the CNLF on seq009 and
+seq028: points the evidence sends to the CLF that the CLF then loses.
 """
 
 from __future__ import annotations
