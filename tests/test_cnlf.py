@@ -105,15 +105,37 @@ def test_cnlf_keeps_the_disk_points_the_clf_loses(ring_runs):
     assert cnlf >= 0.6 and cnlf >= clf + 0.15
 
 
-def test_auto_routes_the_disk_to_cnlf_and_the_background_to_clf(ring_runs):
+def test_auto_keeps_the_independently_moving_disk_on_the_cnlf(ring_runs):
+    """The disk's own measurements follow its local motion, not the dominant one: its rows stay on the CNLF."""
     runs, on_disk = ring_runs
     tracks = runs["auto"][0]
     rows = tracks.method >= 0
     on_cnlf = tracks.method == method_code("cnlf")
-    assert on_cnlf[on_disk].sum() / rows[on_disk].sum() >= 0.8  # measured 0.967
-    # measured 0.063: background points queried as they emerge from behind the disk, lost at once backward
-    assert on_cnlf[~on_disk].sum() / rows[~on_disk].sum() <= 0.10
+    assert on_cnlf[on_disk].sum() / rows[on_disk].sum() >= 0.8
+    assert _within(runs["auto"][2], on_disk, 4.0) >= 0.6
     assert runs["auto"][1]["delta_avg"] > runs["clf"][1]["delta_avg"]
+
+
+def test_auto_does_not_hand_covered_points_to_the_occluder():
+    """Occlusion sample: a covered background point coasts on the dominant motion (CLF), not on the occluder's.
+
+    Measured at this version: 17 % of covered background rows on the CNLF (the
+    first frame of each occlusion, before the loss is known), against 62-88 %
+    with a rule that lets the covered point's neighbourhood decide; <delta_avg
+    0.974 against 0.811 for the CNLF alone.
+    """
+    source, queries, truth = sample_inputs("occlusion")
+    labels = np.loadtxt(SAMPLES / "occlusion" / "labels.csv", delimiter=",", skiprows=1, dtype=int)
+    background = np.isin(queries.point_id, labels[labels[:, 1] == 0, 0])
+    tracks = pipeline.run(source, source.info, load_config(None, method="auto"), queries, seed=3)
+    result, data = score_tracks(tracks, truth)
+    after_query = np.arange(tracks.method.shape[1])[None] > queries.frame[:, None]
+    w, h = source.info.width, source.info.height
+    inside = (data.gt_xy[..., 0] >= 0) & (data.gt_xy[..., 0] <= w - 1) & (data.gt_xy[..., 1] >= 0) & (data.gt_xy[..., 1] <= h - 1)
+    covered = ~data.gt_visible & inside & data.gt_known & after_query & background[:, None]
+    assert covered.sum() >= 100  # the scene does cover background points
+    assert (tracks.method[covered] == method_code("cnlf")).mean() <= 0.3
+    assert result["delta_avg"] >= 0.95
 
 
 def test_cnlf_is_deterministic_per_seed(ring_runs):

@@ -158,12 +158,6 @@ def test_synth_into_a_folder_that_cannot_be_written(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["afile"]
 
 
-def test_auto_support_thresholds_in_the_wrong_order_are_refused(tmp_path):
-    result = run_cli("track", str(SAMPLE), "--set", "filter.auto.support_low=0.9", "--set", "filter.auto.support_high=0.8",
-                     "-o", str(tmp_path / "out.csv"))
-    _one_error_line(result, 1, "'filter.auto.support_low' (0.9) must not exceed 'filter.auto.support_high' (0.8)")
-    assert not list(tmp_path.iterdir())
-
 
 def test_a_frame_smaller_than_every_window_is_refused_with_honest_advice(tmp_path):
     """2x2 frames with a query: detect.block does not apply (no detection); the advice is not below a key's minimum."""
