@@ -21,6 +21,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import multiprocessing
 import os
 import signal
@@ -34,6 +35,7 @@ from condtrack_cli import __version__
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.hashes import config_hash, queries_hash
+from condtrack_cli.progress import show_warnings
 from condtrack_cli.run import track_input
 from condtrack_cli.threads import blas_environment, threads_in_use, use_threads
 
@@ -215,8 +217,10 @@ def stop_on_sigterm(signum, frame) -> None:
     raise SystemExit(SIGTERM_EXIT)
 
 
-def _start_worker() -> None:
-    """Pool worker set-up: Ctrl-C is the parent's to handle; SIGTERM unwinds (an unfinished output's temporary file goes)."""
+def _start_worker(warnings_shown: bool) -> None:
+    """Pool worker set-up: Ctrl-C is the parent's to handle; SIGTERM unwinds (an unfinished output's temporary file
+    goes); warnings shown as in the parent (not with -q)."""
+    show_warnings(warnings_shown)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, stop_on_sigterm)
 
@@ -252,7 +256,8 @@ def run_local(jobs: list[BatchJob], processes: int, on_record: Callable[[ClipRec
         return
     context = multiprocessing.get_context("spawn")  # OpenCV is not fork-safe
     with _Environment(blas_environment(jobs[0].threads)):  # read by the BLAS libraries when the workers import numpy
-        pool = context.Pool(min(processes, len(jobs)), initializer=_start_worker)
+        shown = logging.getLogger("condtrack").isEnabledFor(logging.WARNING)
+        pool = context.Pool(min(processes, len(jobs)), initializer=_start_worker, initargs=(shown,))
     try:
         for record in pool.imap_unordered(run_job, jobs):
             on_record(record)

@@ -2,10 +2,22 @@
 
 from __future__ import annotations
 
+import logging
 import sys
 
 import click
 import numpy as np
+
+
+def show_warnings(shown: bool) -> None:
+    """The library's warnings (logger ``condtrack``) go to stderr as ``warning: ...`` lines, or nowhere (-q)."""
+    logger = logging.getLogger("condtrack")
+    if not logger.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("warning: %(message)s"))
+        logger.addHandler(handler)
+        logger.propagate = False
+    logger.setLevel(logging.WARNING if shown else logging.ERROR)
 
 
 class Progress:

@@ -108,7 +108,7 @@ def test_batch_creates_out_dir_names_same_named_inputs_and_writes_the_manifest(c
     # resume: the HDF5 outputs made with these settings are skipped, the failed input is tried again
     again = run_cli("track", *clips[:2], str(broken), "-m", "stk", "--seed", "3", "--out-dir", str(out_dir),
                     "--skip-existing", "-q")
-    assert again.returncode == 1 and again.stderr.count("failed: ") == 1
+    assert again.returncode == 1 and again.stderr.count(f"Error: {broken}: ") == 1
     status = {r["input"]: r["status"] for r in manifest(out_dir)[3:]}
     assert status == {clips[0]: "skipped", clips[1]: "skipped", str(broken): "failed"}
 

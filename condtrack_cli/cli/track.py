@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import logging
-import sys
 from pathlib import Path
 
 import click
@@ -12,7 +10,7 @@ from condtrack_cli import registry
 from condtrack_cli.batch_command import batch_options, run_batch, single_run_threads
 from condtrack_cli.config import Config, check_method, load_config
 from condtrack_cli.errors import CondtrackError, read_error
-from condtrack_cli.progress import Progress
+from condtrack_cli.progress import Progress, show_warnings
 
 
 class _MethodChoice(click.Choice):
@@ -32,17 +30,6 @@ class _MethodChoice(click.Choice):
     def convert(self, value, param, ctx) -> str:
         check_method(value)  # the same one-line error as filter.method in a YAML config
         return value
-
-
-def _configure_logging(quiet: bool) -> None:
-    """Warnings of the library go to stderr as ``warning: ...`` lines, unless quiet."""
-    logger = logging.getLogger("condtrack")
-    if not logger.handlers:
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter("warning: %(message)s"))
-        logger.addHandler(handler)
-        logger.propagate = False
-    logger.setLevel(logging.ERROR if quiet else logging.WARNING)
 
 
 @click.command("track")
@@ -71,7 +58,7 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     """
     from condtrack_cli.run import track_input
 
-    _configure_logging(quiet)
+    show_warnings(not quiet)
     inputs = list(inputs) + (_read_list(list_path) if list_path else [])
     if not inputs:
         raise CondtrackError("no INPUT given (a frame folder or a video file, or --from-list FILE)")
