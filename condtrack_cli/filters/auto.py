@@ -132,6 +132,11 @@ class AutoTracker(Tracker):
             self.clf.visible[to_clf] = self.visible[to_clf]
             self.cnlf.release(to_clf)
             self.on_cnlf[to_clf] = False
+        # A point handed to the CLF, or not found while on it, is predicted by the dominant motion (rule 4: a
+        # covered point's window moves with its occluder); the CLF's own ``select`` may take it back to the
+        # local motion once it is found again (filters/clf.py).
+        self.clf.on_local[to_clf] = False
+        self.clf.on_local[index[lost & ~want]] = False
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
         fit = self.clf.motion.fit(prev, frame)
