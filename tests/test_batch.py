@@ -248,7 +248,7 @@ def test_dask_run_writes_the_same_bytes_as_the_local_run(clips, tmp_path):
     distributed = pytest.importorskip("distributed")
     local, remote = tmp_path / "local", tmp_path / "dask"
     assert run_cli("track", *clips, "-m", "clf", "--out-dir", str(local), "-j", "2", "-q").returncode == 0
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, protocol="tcp",
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, protocol="tcp",
                                   dashboard_address=None) as cluster:
         result = run_cli("track", *clips, "-m", "clf", "--out-dir", str(remote), "--scheduler", cluster.scheduler_address)
     assert result.returncode == 0, result.stderr
