@@ -40,7 +40,7 @@ import numpy as np
 
 from scipy.special import logsumexp
 
-from condtrack_cli.filters.gauss2 import log_gauss2
+from condtrack_cli.filters.gauss2 import inverse2
 
 
 class TransitionLog:
@@ -110,14 +110,27 @@ def particle_smoother(
         on = np.flatnonzero(linked[:, k + 1])
         if not on.size:
             continue
-        # log f(x_{k+1}^(j) | x_k^(i)), (n, i, j)
-        log_f = log_gauss2(particles[on, k + 1][:, None], mu[on, k + 1][:, :, None], Q[on, k + 1][:, :, None])
+        log_f = transition_log_density(particles[on, k + 1], mu[on, k + 1], Q[on, k + 1])
         w_k = log_w[on, k]
         predicted = logsumexp(w_k[:, :, None] + log_f, axis=1)  # (n, j): log sum_l w_k^(l) f(x_{k+1}^(j) | x_k^(l))
         backward = logsumexp(smoothed[on, k + 1][:, None, :] + log_f - predicted[:, None, :], axis=2)  # (n, i)
         unnormalised = w_k + backward
         smoothed[on, k] = unnormalised - logsumexp(unnormalised, axis=1, keepdims=True)
     return weighted_moments(particles, smoothed)
+
+
+def transition_log_density(x_next: np.ndarray, mu: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """(n, N, N) log N(x_next^(j); mu^(i), Q^(i)) at [:, i, j] for x_next, mu (n, N, 2) and Q (n, N, 2, 2).
+
+    The quadratic form is written out (three products per pair) rather than
+    broadcast through ``log_gauss2``: this N^2 table is the smoother's whole cost.
+    """
+    inv = inverse2(Q)
+    log_norm = -0.5 * np.log(Q[..., 0, 0] * Q[..., 1, 1] - Q[..., 0, 1] ** 2) - np.log(2 * np.pi)  # (n, N)
+    dx = x_next[:, None, :, 0] - mu[:, :, None, 0]
+    dy = x_next[:, None, :, 1] - mu[:, :, None, 1]
+    quad = inv[..., 0, 0, None] * dx * dx + 2 * inv[..., 0, 1, None] * dx * dy + inv[..., 1, 1, None] * dy * dy
+    return log_norm[..., None] - 0.5 * quad
 
 
 def weighted_moments(particles: np.ndarray, log_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
