@@ -117,8 +117,8 @@ def track_sequence(
     finally:
         if progress is not None:
             progress.close()
-    attributes = {"config": config.to_yaml(), "method": config.method, "seed": seed, "smoothed": config.smooth,
-                  "config_hash": config_hash(config), "queries_hash": queries_hash(given)}
+    attributes = {"config": config.to_yaml(), "method": config.method, "seed": seed,
+                  "config_hash": config_hash(config), "queries_hash": queries_hash(given), "smoothed": config.smooth}
     return Tracks(result, info, config, attributes), source
 
 
