@@ -30,7 +30,7 @@ from condtrack_cli.progress import Progress
 from condtrack_cli.queries import queries_from_rows, read_queries
 
 #: File attributes of a run (beyond the sequence's) that :meth:`Tracks.to_hdf5` writes and ``read_tracks`` keeps.
-RUN_ATTRIBUTES = ("config", "method", "seed", "config_hash", "queries_hash")
+RUN_ATTRIBUTES = ("config", "method", "seed", "config_hash", "queries_hash", "smoothed")
 
 
 @dataclass(frozen=True)
@@ -41,7 +41,7 @@ class Tracks:
     ``result`` is the pipeline's :class:`condtrack_cli.types.Tracks` (with the
     raw measurements z, R and the optional datasets); ``info`` the sequence;
     ``config`` the resolved config (None for a CSV read back: a CSV holds none);
-    ``attributes`` the run's file attributes (config YAML, method, seed, and their hashes: ``condtrack_cli.hashes``).
+    ``attributes`` the run's file attributes (config YAML, method, seed, smoothed, and the hashes: ``condtrack_cli.hashes``).
     """
 
     result: types.Tracks
@@ -118,7 +118,7 @@ def track_sequence(
         if progress is not None:
             progress.close()
     attributes = {"config": config.to_yaml(), "method": config.method, "seed": seed,
-                  "config_hash": config_hash(config), "queries_hash": queries_hash(given)}
+                  "config_hash": config_hash(config), "queries_hash": queries_hash(given), "smoothed": config.smooth}
     return Tracks(result, info, config, attributes), source
 
 

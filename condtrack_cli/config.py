@@ -82,6 +82,7 @@ class Config:
     method: str
     filters: Mapping[str, StageSettings]  #: settings of every registered filter
     output: OutputSettings
+    smooth: bool = False  #: ``filter.smooth``: two-way smoothing of each pass (``filters/smoother.py``)
 
     def stage(self, kind: str) -> StageConfig:
         return self.stages[kind]
@@ -92,7 +93,7 @@ class Config:
         for kind in NAMED_SECTIONS:
             stage = self.stages[kind]
             out[kind] = {"name": stage.name, **stage.settings.model_dump()}
-        out["filter"] = {"method": self.method, **{n: s.model_dump() for n, s in self.filters.items()}}
+        out["filter"] = {"method": self.method, "smooth": self.smooth, **{n: s.model_dump() for n, s in self.filters.items()}}
         out["output"] = self.output.model_dump()
         return out
 
@@ -184,16 +185,19 @@ def resolve(raw: Mapping[str, Any]) -> Config:
     filter_raw = dict(filter_raw)
     method = filter_raw.pop("method", DEFAULT_METHOD)
     check_method(method)
+    smooth = filter_raw.pop("smooth", False)
+    if not isinstance(smooth, bool):
+        raise CondtrackError(f"config key 'filter.smooth': expected true or false, got {smooth!r}")
     filters = {}
     for name in registry.names("filter"):
         filters[name] = _validate(f"filter.{name}", registry.get("filter", name).settings, filter_raw.pop(name, None) or {})
     if filter_raw:
         key = next(iter(filter_raw))
         raise CondtrackError(
-            f"config key 'filter.{key}': unknown key; valid keys: method, {', '.join(registry.names('filter'))}"
+            f"config key 'filter.{key}': unknown key; valid keys: method, smooth, {', '.join(registry.names('filter'))}"
         )
     output = _validate("output", OutputSettings, raw.get("output") or {})
-    return Config(stages=stages, method=method, filters=filters, output=output)
+    return Config(stages=stages, method=method, filters=filters, output=output, smooth=smooth)
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -283,6 +287,7 @@ def default_yaml() -> str:
         lines.append("")
     lines.append(f"filter:  # {SECTION_DOCS['filter']}")
     lines.append(f"  method: {DEFAULT_METHOD}  # one of: {', '.join(valid_methods())} (-m overrides)")
+    lines.append("  smooth: false  # two-way smoothing: each frame's estimate also uses the later frames (--smooth; clf, cnlf, auto)")
     for name in registry.names("filter"):
         spec = registry.get("filter", name)
         lines.append(f"  {name}:  # {spec.summary}")

@@ -7,6 +7,12 @@ frame's report to an optional ``on_frame`` callback (progress display).
 A point queried at frame k > 0 is tracked forward from k and backward from k:
 the backward pass runs the same filter on the time-reversed frames k_max .. 0
 (k_max the latest query frame), so every point has a position on every frame.
+
+With ``filter.smooth`` each pass is smoothed on its own, in its own time
+direction, before the two are merged: the forward pass over frames q..F-1 of
+each point, the backward pass over q..0. Both start from the query itself
+(std ``initial_std``), which ties them at frame q, so little is lost by not
+fusing them across it.
 """
 
 from __future__ import annotations
@@ -97,10 +103,13 @@ def run_pass(
                 config.filters[config.method], queries=queries, info=info, config=config,
                 rng=np.random.default_rng(seed),
             )
+            if config.smooth and not tracker.smoother:
+                raise CondtrackError(f"config key 'filter.smooth': method {config.method!r} has no smoother")
         history.append(tracker.step(frame, prev))
         if on_frame is not None:
             on_frame(index, history[-1])
         prev = frame
     if tracker is None:
         raise CondtrackError(f"{info.input}: the input has no frame")
-    return tracker.finish(history)
+    tracks = tracker.finish(history)
+    return tracker.smooth(tracks) if config.smooth else tracks

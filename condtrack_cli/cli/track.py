@@ -40,6 +40,7 @@ class _MethodChoice(click.Choice):
 @click.option("-o", "--output", "output_path", type=click.Path(dir_okay=False), help="Output .h5/.hdf5 or .csv (default: CSV on stdout).")
 @click.option("--overlay", "overlay_path", type=click.Path(dir_okay=False), help="Also render an overlay video (.mp4) of the tracks.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of every random draw.")
+@click.option("--smooth", is_flag=True, help="Two-way smoothing: each frame's estimate also uses the later frames (filter.smooth).")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override one config value, e.g. motion.levels=3 (repeatable).")
 @click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
 @click.option("--out-dir", type=click.Path(file_okay=False), help="Batch: folder of the outputs (created if missing), one <input name>.<format> each, and manifest.jsonl.")
@@ -47,7 +48,7 @@ class _MethodChoice(click.Choice):
 @click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True, help="Batch: inputs processed in parallel.")
 @batch_options
 @click.option("-q", "--quiet", is_flag=True, help="No progress or summary on stderr.")
-def track(inputs, config_path, queries_path, method, output_path, overlay_path, seed, overrides, list_path, out_dir,
+def track(inputs, config_path, queries_path, method, output_path, overlay_path, seed, smooth, overrides, list_path, out_dir,
           batch_format, jobs, quiet, threads, **batch) -> None:
     """Track points through INPUT, a folder of frames or a video file.
 
@@ -62,7 +63,7 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     inputs = list(inputs) + (_read_list(list_path) if list_path else [])
     if not inputs:
         raise CondtrackError("no INPUT given (a frame folder or a video file, or --from-list FILE)")
-    config: Config = load_config(config_path, list(overrides), method)
+    config: Config = load_config(config_path, list(overrides) + (["filter.smooth=true"] if smooth else []), method)
     if len(inputs) == 1 and out_dir is None:
         single_run_threads(threads, batch)
         progress = None if quiet else Progress

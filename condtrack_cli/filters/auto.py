@@ -42,6 +42,9 @@ rule, issue 11's table): kt3dmoseg seq005 0.700 (previous 0.671; cnlf 0.703), se
 0.701 (0.523; cnlf 0.741), seq011 0.921 (0.867; cnlf 0.911), seq028 0.616
 (0.434; cnlf 0.668), seq059 0.777 (0.704; cnlf 0.785). Not yet within 0.01 of the CNLF on seq009 and
 seq028: points the evidence sends to the CLF that the CLF then loses.
+With ``filter.smooth`` each point's contiguous run of CLF frames is
+RTS-smoothed and each run of CNLF frames FFBSm-smoothed (``smoother.py``); a
+handover ends a run, so the frame before it keeps its filtered estimate.
 """
 
 from __future__ import annotations
@@ -78,6 +81,7 @@ class AutoTracker(Tracker):
     """Routes points between a CLF and a CNLF that share their reference patches."""
 
     method = "cnlf"
+    smoother = "rts+ffbsm"
 
     def __init__(self, settings: AutoSettings, queries: Queries, info: SequenceInfo, config: Config,
                  rng: np.random.Generator):
@@ -169,6 +173,10 @@ class AutoTracker(Tracker):
         for name in ("xy", "cov", "visible", "z", "R"):
             getattr(self, name)[index] = getattr(tracker, name)[index]
         self.method_code[index] = method_code(tracker.method)
+
+    def smooth(self, tracks: Tracks) -> Tracks:
+        """Each point's CLF frames smoothed by the CLF's RTS, its CNLF frames by the CNLF's FFBSm."""
+        return self.cnlf.smooth(self.clf.smooth(tracks, tracks.method == method_code(self.clf.method)))
 
     def finish(self, history: list[FrameEstimate]) -> Tracks:
         """Tracks whose CNLF segments still open at the end carry the particle path means."""

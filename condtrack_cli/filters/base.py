@@ -22,6 +22,7 @@ class Tracker:
     """Base of all filters; subclasses set ``method`` and implement ``_start``/``_advance``."""
 
     method: str = ""
+    smoother: str = ""  #: name of the two-way smoother :meth:`smooth` runs ("" when the filter has none)
 
     def __init__(self, queries: Queries, info: SequenceInfo):
         p = len(queries)
@@ -58,6 +59,10 @@ class Tracker:
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
         """Move points ``index`` from ``prev`` to ``frame``; update xy, cov, visible, z, R."""
         raise NotImplementedError
+
+    def smooth(self, tracks: Tracks) -> Tracks:
+        """``tracks`` (from :meth:`finish`) with xy and cov smoothed over the whole pass (``filter.smooth``)."""
+        raise NotImplementedError(f"{self.method} has no smoother")
 
     def finish(self, history: list[FrameEstimate]) -> Tracks:
         """Stack the per-frame reports into (P, F, ...) arrays."""

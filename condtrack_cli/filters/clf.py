@@ -23,10 +23,13 @@ Per frame, for all started points at once:
 - update where R_k is finite and z_k is in the gate nu^T (Sigma + R_k)^-1 nu <= gamma;
   elsewhere the point coasts on the dynamics and is reported not visible
   (the gate and the reference update: ``reference.py``).
+With ``filter.smooth`` the CLF records A_k, x_{k|k-1}, Sigma_{k|k-1} per frame
+and :meth:`CLFTracker.smooth` runs the RTS smoother over them (``smoother.py``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Literal
 
 import numpy as np
@@ -39,10 +42,11 @@ from condtrack_cli.filters.base import Tracker
 from condtrack_cli.filters.reference import (
     GatedMeasurement, InitialStateSettings, MeasuredFilterSettings, ReferenceMatcher,
 )
+from condtrack_cli.filters.smoother import TransitionLog, rts
 from condtrack_cli.motion.local import LocalField, LocalMotion
 from condtrack_cli.motion.robust import displacement, jacobian, state_noise
 from condtrack_cli.registry import register
-from condtrack_cli.types import Frame, Queries, SequenceInfo
+from condtrack_cli.types import Frame, Queries, SequenceInfo, Tracks
 
 
 def build_stage(config: Config, kind: str):
@@ -105,15 +109,16 @@ class MDRTracker(Tracker):
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         self.cov[index] = self.settings.initial_std**2 * np.eye(2)
 
-    def _predict(self, index: np.ndarray, prev: Frame, frame: Frame) -> tuple[np.ndarray, np.ndarray]:
+    def _predict(self, index: np.ndarray, prev: Frame, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x_{k|k-1} (n, 2), Sigma_{k|k-1} (n, 2, 2) of points ``index`` and the A_k (n, 2, 2) used."""
         fit = self.motion.fit(prev, frame)
         x = self.xy[index]
         A, b = linear_dynamics(fit, x)
         m = self.motion_settings
-        return kalman.predict(x, self.cov[index], A, b, state_noise(fit, x, m.q_floor, m.q_misfit, m.misfit_window))
+        return *kalman.predict(x, self.cov[index], A, b, state_noise(fit, x, m.q_floor, m.q_misfit, m.misfit_window)), A
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
-        self.xy[index], self.cov[index] = self._predict(index, prev, frame)
+        self.xy[index], self.cov[index], _ = self._predict(index, prev, frame)
         x = self.xy[index]
         w, h = self.info.width, self.info.height
         self.visible[index] = (x[:, 0] >= -0.5) & (x[:, 0] <= w - 0.5) & (x[:, 1] >= -0.5) & (x[:, 1] <= h - 0.5)
@@ -123,6 +128,7 @@ class CLFTracker(MDRTracker):
     """CLF: MDR's prediction corrected by the SSD measurement with R_k from the surface."""
 
     method = "clf"
+    smoother = "rts"
 
     def __init__(self, settings: CLFSettings, queries: Queries, info: SequenceInfo, config: Config,
                  reference: ReferenceMatcher | None = None):
@@ -130,6 +136,7 @@ class CLFTracker(MDRTracker):
         self.reference = reference or ReferenceMatcher(build_stage(config, "measure"), settings, len(queries))
         self.local = LocalMotion(self.motion_settings) if settings.dynamics != "global" else None
         self.on_local = np.full(len(queries), settings.dynamics != "global")  #: (P,) predicted by the local motion
+        self.transitions = TransitionLog(len(queries), A=(2, 2), x_pred=(2,), sigma_pred=(2, 2)) if config.smooth else None
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         super()._start(index, frame)
@@ -138,15 +145,17 @@ class CLFTracker(MDRTracker):
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
         x_prev, found_before = self.xy[index].copy(), self.visible[index].copy()
-        x_global, sigma_global = self._predict(index, prev, frame)
-        x_pred, sigma_pred = x_global, sigma_global
+        x_global, sigma_global, A_global = self._predict(index, prev, frame)
+        x_pred, sigma_pred, A = x_global, sigma_global, A_global
         if self.local is not None:
-            x_local, sigma_local = kalman.predict(
-                x_prev, self.cov[index], *local_dynamics(self.local.field(prev, frame), x_prev)
-            )
+            A_local, b_local, Q_local = local_dynamics(self.local.field(prev, frame), x_prev)
+            x_local, sigma_local = kalman.predict(x_prev, self.cov[index], A_local, b_local, Q_local)
             local = self.on_local[index]
             x_pred = np.where(local[:, None], x_local, x_global)
             sigma_pred = np.where(local[:, None, None], sigma_local, sigma_global)
+            A = np.where(local[:, None, None], A_local, A_global)
+        if self.transitions is not None:  # what the update below uses, for the RTS smoother
+            self.transitions.record(frame.index, index, A=A, x_pred=x_pred, sigma_pred=sigma_pred)
         measured = self.reference.measure_in_gate(index, frame, x_pred, sigma_pred)
         if self.settings.dynamics == "select":
             self._choose(index, measured, x_global, x_local)
@@ -168,6 +177,21 @@ class CLFTracker(MDRTracker):
         miss_local = np.linalg.norm(measured.z - x_local, axis=1)
         closer = miss_global - miss_local >= self.settings.select_margin
         self.on_local[index[measured.valid]] = closer[measured.valid]
+
+    def smooth(self, tracks: Tracks, members: np.ndarray | None = None) -> Tracks:
+        """``tracks`` (this filter's :meth:`finish`) with the RTS-smoothed xy and cov of each point's segments.
+
+        members (P, F) bool: the frames this filter produced (all when None); a
+        transition k-1 -> k is smoothed over when both frames are members.
+        """
+        n_frames = tracks.xy.shape[1]
+        x_pred = self.transitions.stacked("x_pred", n_frames)
+        linked = np.isfinite(x_pred).all(axis=-1)
+        if members is not None:
+            linked[:, 1:] &= members[:, 1:] & members[:, :-1]
+        xy, cov = rts(tracks.xy, tracks.cov, x_pred, self.transitions.stacked("sigma_pred", n_frames),
+                      self.transitions.stacked("A", n_frames), linked)
+        return dataclasses.replace(tracks, xy=xy, cov=cov)
 
 
 @register("filter", "mdr", MDRSettings, "MDR baseline: the global robust motion alone, no measurement")

@@ -19,6 +19,9 @@ all started points and all their particles at once:
   x_{0:k}^(i) with the final weights (the paper's 1/N is a typo for
   normalised weights), computed in ``finish``; the reported covariance on
   each frame is the weighted covariance of that frame's particles.
+With ``filter.smooth`` the CNLF records each frame's weights and the dynamics
+N(mu^(i), Q^(i)) that moved the particles into it, and :meth:`CNLFTracker.smooth`
+replaces the estimate by the FFBSm smoother's (``smoother.py``).
 """
 
 from __future__ import annotations
@@ -32,8 +35,10 @@ from pydantic import Field
 from condtrack_cli.config import Config
 from condtrack_cli.filters.base import Tracker
 from condtrack_cli.filters.clf import build_stage
+from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, sample_gauss2
 from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMatcher
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise
+from condtrack_cli.filters.smoother import TransitionLog, particle_smoother
 from condtrack_cli.motion.local import LocalMotion
 from condtrack_cli.registry import register
 from condtrack_cli.types import FrameEstimate, Frame, Queries, SequenceInfo, Tracks
@@ -43,35 +48,6 @@ class CNLFSettings(MeasuredFilterSettings):
     particles: int = Field(100, ge=1, le=10000, description="particles per point (the paper's N = 100)")
     ess_fraction: float = Field(0.5, gt=0, le=1, description="resample when the effective sample size falls below this x N")
     resampling: Literal["systematic", "residual"] = Field("systematic", description="resampling scheme")
-
-
-def inverse2(m: np.ndarray) -> np.ndarray:
-    """Inverses of (..., 2, 2) symmetric positive-definite matrices, in closed form."""
-    a, b, d = m[..., 0, 0], m[..., 0, 1], m[..., 1, 1]
-    det = a * d - b * b
-    out = np.empty_like(m)
-    out[..., 0, 0], out[..., 1, 1] = d / det, a / det
-    out[..., 0, 1] = out[..., 1, 0] = -b / det
-    return out
-
-
-def log_gauss2(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """log N(x; mean, cov) for (..., 2) points and (..., 2, 2) covariances."""
-    d = x - mean
-    inv = inverse2(cov)
-    quad = np.einsum("...i,...ij,...j->...", d, inv, d)
-    det = cov[..., 0, 0] * cov[..., 1, 1] - cov[..., 0, 1] ** 2
-    return -0.5 * quad - 0.5 * np.log(det) - np.log(2 * np.pi)
-
-
-def sample_gauss2(rng: np.random.Generator, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """Draws from N(mean, cov), (..., 2) and (..., 2, 2), with a closed-form 2x2 Cholesky factor."""
-    a, b, d = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
-    l11 = np.sqrt(a)
-    l21 = b / l11
-    l22 = np.sqrt(np.maximum(d - l21 * l21, 0.0))
-    e = rng.standard_normal(mean.shape)
-    return mean + np.stack([l11 * e[..., 0], l21 * e[..., 0] + l22 * e[..., 1]], axis=-1)
 
 
 def mixture_moments(log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -129,6 +105,7 @@ class CNLFTracker(Tracker):
     """Particle filter with the optimal proposal, vectorised over points and particles: arrays (P, N, ...)."""
 
     method = "cnlf"
+    smoother = "ffbsm"
 
     def __init__(self, settings: CNLFSettings, queries: Queries, info: SequenceInfo, config: Config,
                  rng: np.random.Generator, reference: ReferenceMatcher | None = None):
@@ -143,6 +120,7 @@ class CNLFTracker(Tracker):
         self.particle_history: list[np.ndarray] = []  #: per frame, (P, N, 2) particles, NaN off the CNLF
         self.store_particles = config.output.store_particles
         self.ancestor_history: list[np.ndarray] = []  #: per frame, (P, N) index of each particle's parent
+        self.transitions = TransitionLog(p, log_w=(n,), mu=(n, 2), Q=(n, 2, 2)) if config.smooth else None
 
     def step(self, frame: Frame, prev: Frame | None) -> FrameEstimate:
         self.begin_frame()
@@ -158,6 +136,8 @@ class CNLFTracker(Tracker):
         """After a frame: keep its particles and their parents for the path estimate."""
         self.particle_history.append(np.where((self.lineage_start >= 0)[:, None, None], self.particles, np.nan))
         self.ancestor_history.append(self.ancestors)
+        if self.transitions is not None:
+            self.transitions.record(len(self.particle_history) - 1, np.arange(len(self.log_w)), log_w=self.log_w.copy())
 
     def adopt(self, index: np.ndarray, frame_index: int, xy: np.ndarray, cov: np.ndarray) -> None:
         """(Re)start points ``index`` with particles drawn from N(xy (n, 2), cov (n, 2, 2)), equal weights."""
@@ -192,6 +172,9 @@ class CNLFTracker(Tracker):
         x = self.particles[index]  # (n, N, 2)
         mu = x + field.displacement(x)  # eq. (5) mean
         Q = field.noise(x)  # (n, N, 2, 2)
+        if self.transitions is not None:  # particles drawn this frame from the previous one's: smoothable
+            linked = self.lineage_start[index] < frame.index
+            self.transitions.record(frame.index, index[linked], mu=mu[linked], Q=Q[linked])
         measured = self.reference.measure_in_gate(index, frame, *mixture_moments(self.log_w[index], mu, Q))
         particles, log_w = propagate(self.rng, self.log_w[index], mu, Q, measured.z, measured.R_used, measured.valid)
         picks, log_w = resample(self.rng, log_w, self.settings)
@@ -207,6 +190,20 @@ class CNLFTracker(Tracker):
         """The trajectory estimate: the weighted mean of the particle paths with the final weights."""
         tracks = super().finish(history)
         return dataclasses.replace(tracks, xy=self.path_means(tracks.xy), extras=self.extras())
+
+    def smooth(self, tracks: Tracks) -> Tracks:
+        """``tracks`` with the FFBSm mean and covariance on every frame where the point has particles."""
+        n_frames = tracks.xy.shape[1]
+        particles = np.stack(self.particle_history, axis=1)  # (P, F, N, 2)
+        mu = self.transitions.stacked("mu", n_frames)
+        linked = np.isfinite(mu).all(axis=(2, 3))
+        xy, cov = particle_smoother(
+            particles, self.transitions.stacked("log_w", n_frames), mu, self.transitions.stacked("Q", n_frames), linked,
+        )
+        on = np.isfinite(particles).all(axis=(2, 3))
+        return dataclasses.replace(
+            tracks, xy=np.where(on[..., None], xy, tracks.xy), cov=np.where(on[..., None, None], cov, tracks.cov),
+        )
 
     def extras(self) -> dict:
         """``particles/xy`` (P, F, N, 2) float32 when ``output.store_particles`` is set."""
