@@ -32,13 +32,14 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")
-    try:
-        handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
-    except OSError as error:
-        raise CondtrackError(f"{path}: cannot write in '{folder}' ({error.strerror})") from None
-    os.close(handle)
-    temporary = Path(temporary)
+    # Held from before the file exists: a signal between its creation and the clean-up's start left it behind.
     with held_signals() as held:  # a stop signal during the write: the file is discarded, then the signal acts
+        try:
+            handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=folder)
+        except OSError as error:
+            raise CondtrackError(f"{path}: cannot write in '{folder}' ({error.strerror})") from None
+        os.close(handle)
+        temporary = Path(temporary)
         try:
             yield temporary
             if not held.received:
@@ -61,15 +62,20 @@ def staging_folder(path: str | Path) -> Iterator[Path]:
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")
-    try:
-        staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=folder))
-    except OSError as error:
-        raise CondtrackError(f"{path}: cannot write in '{folder}' ({error.strerror})") from None
-    try:
+    with contextlib.ExitStack() as cleanup:
+        with held_signals():  # the folder and its clean-up come into being together, whatever signal arrives
+            try:
+                staging = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".part", dir=folder))
+            except OSError as error:
+                raise CondtrackError(f"{path}: cannot write in '{folder}' ({error.strerror})") from None
+            cleanup.callback(_remove_folder, staging)
         yield staging
-    finally:
-        with held_signals():  # a second Ctrl-C does not stop the clean-up halfway
-            shutil.rmtree(staging, ignore_errors=True)
+
+
+def _remove_folder(folder: Path) -> None:
+    """Delete ``folder`` with all it holds; a second Ctrl-C does not stop the clean-up halfway."""
+    with held_signals():
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def publish(built: Path, path: str | Path) -> None:

@@ -75,7 +75,10 @@ def _dataset(group: h5py.Group, name: str, data: np.ndarray, settings: OutputSet
 def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
     """Write the self-describing HDF5 file (docs/schema.md)."""
     q = tracks.queries
-    with h5py.File(path, "w", track_order=False) as f:
+    # No chunk cache: each chunk is written when its dataset is created, so the layout follows the order
+    # below. With the cache, chunks were flushed at close in an order that varied between processes
+    # (same datasets, different bytes: a Dask run did not match the local one).
+    with h5py.File(path, "w", track_order=False, rdcc_nbytes=0) as f:
         attrs = {
             "schema_version": SCHEMA_VERSION, "condtrack_version": __version__,
             "input": info.input, "width": info.width, "height": info.height,
