@@ -31,17 +31,23 @@ Rule, per point, before each step:
    point's neighbourhood moves with the occluder, away from v, so it coasts on
    the dominant motion (CLF) and is measured again around the right place; a
    point lost on parallax or an independent object keeps its local motion.
+   A point handed to the CLF, or lost while on it, is predicted there by the
+   dominant motion until the CLF's own ``select`` (``clf.py``) finds the local
+   motion better again.
 The state is handed over: particles drawn from N(x, Sigma) one way, the
 particle mean and covariance the other way. The ``method`` of each row says
 which filter produced it. The rule does not assume which filter is the more
 accurate: a better CLF wins more points through (2) and (3).
 
 Measured with ``python -m condtrack_cli.evaluate.bench --versus-lk``
-(<delta_avg, issue 11 protocol, seed 0; "previous" = the robust-weight
-rule, issue 11's table): kt3dmoseg seq005 0.700 (previous 0.671; cnlf 0.703), seq009
-0.701 (0.523; cnlf 0.741), seq011 0.921 (0.867; cnlf 0.911), seq028 0.616
-(0.434; cnlf 0.668), seq059 0.777 (0.704; cnlf 0.785). Not yet within 0.01 of the CNLF on seq009 and
-seq028: points the evidence sends to the CLF that the CLF then loses.
+(<delta_avg, issue 11 protocol, seed 0; "previous" = the robust-weight rule of
+the first version, issue 11's table): kt3dmoseg seq005 0.722 (previous 0.671;
+clf 0.731), seq009 0.713 (0.523; cnlf 0.750), seq011 0.920 (0.867; clf 0.911),
+seq028 0.656 (0.434; cnlf 0.693), seq059 0.783 (0.704; cnlf 0.784), dinosaur
+0.830 (0.774; clf 0.835), merton1 0.692 (0.347; cnlf 0.692). Not within 0.01
+of the CNLF on seq009 and seq028: rule 4's handing of lost points to the
+dominant motion costs 0.035 on each (docs/departures.md) and keeps covered
+points off their occluder on the occlusion scene.
 With ``filter.smooth`` each point's contiguous run of CLF frames is
 RTS-smoothed and each run of CNLF frames FFBSm-smoothed (``smoother.py``); a
 handover ends a run, so the frame before it keeps its filtered estimate.
