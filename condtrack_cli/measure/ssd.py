@@ -61,7 +61,7 @@ from typing import Literal
 import cv2
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
-from scipy import fft, ndimage, special, stats
+from scipy import fft, ndimage, special
 
 from condtrack_cli.config import StageSettings
 from condtrack_cli.registry import register
@@ -195,7 +195,7 @@ def estimate_noise_sigma(gray: np.ndarray) -> float:
     gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)
     structure = cv2.boxFilter(gx * gx + gy * gy, -1, (7, 7), borderType=cv2.BORDER_REFLECT)[1:-1, 1:-1]
     flattest = structure <= np.quantile(structure, 0.25)
-    sigma = float(np.median(np.abs(response[flattest])) / (stats.norm.ppf(0.75) * 6.0))
+    sigma = float(np.median(np.abs(response[flattest])) / (special.ndtri(0.75) * 6.0))
     return max(sigma, _QUANTISATION_STD)
 
 
@@ -207,7 +207,7 @@ def _noise_threshold(sigma: float, m: int, alpha: float) -> float:
     quantile q, i.e. r < sigma_d^2 (q + sqrt(2 m))^2 / 2.
     """
     sigma_d2 = 2.0 * sigma**2
-    q = stats.norm.ppf(1.0 - alpha)
+    q = special.ndtri(1.0 - alpha)
     return sigma_d2 * (q + np.sqrt(2.0 * m)) ** 2 / 2.0  # eq. (10) solved for r
 
 
@@ -318,7 +318,7 @@ def _response(
     # law. With N = 49 at 5%, the uniform law is rejected when KL > 0.67 nat: D_k fills less than half of W.
     entropy = -special.xlogy(d, d).sum(axis=(1, 2))
     kl_uniform = np.log(n_available) - entropy
-    critical = stats.chi2.ppf(1.0 - settings.uniform_alpha, np.maximum(n_available - 1, 1))
+    critical = 2.0 * special.gammaincinv(np.maximum(n_available - 1, 1) / 2, 1.0 - settings.uniform_alpha)  # chi2 quantile
     uniform_rejected = 2.0 * n_available * kl_uniform > critical
     det = R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2
     rxx, rxy, ryy = R[:, 0, 0, None, None], R[:, 0, 1, None, None], R[:, 1, 1, None, None]
