@@ -3,8 +3,10 @@
 ``make bench`` runs ``python -m condtrack_cli.evaluate.bench --out bench/results.md``.
 Each method runs as its own ``condtrack track`` process (whole-process wall time
 and peak resident memory, read with ``os.wait4``), and is scored with the same
-code as ``condtrack eval``. Speed is a ratio to STK (OpenCV's pyramidal
-Lucas-Kanade) measured in the same run.
+code as ``condtrack eval``. Speed (issue 13) is a ratio to a plain OpenCV
+Lucas-Kanade script (``plain_lk.py``) run as its own process in the same run,
+on a 640x480 synthetic scene and a shared KITTI clip, followed by a profile of
+each filter by stage (``speed_table``, ``profile_table``).
 
 Sequences: ``sample_sequences/*`` (queries.csv and tracks.csv shipped) and
 ``../shared/data/*`` with a tracks.csv (skipped with a message when absent);
@@ -12,7 +14,8 @@ for those, the queries are each track's first observation, over tracks with at
 least 3 observations, at most ``--max-points`` of them (every k-th track, k
 the smallest stride that fits) to bound the run time.
 
-``--batch`` prints only the batch throughput table (``batch_table``).
+``--batch`` prints only the batch throughput table (``batch_table``);
+``--speed`` only the speed comparison and the profile.
 
 ``--support SEQUENCE`` prints instead the dominant model's one-step prediction
 error by neighbourhood support (the measurement behind ``auto``'s thresholds).
@@ -150,33 +153,157 @@ def calibration_table(max_points: int, work: Path) -> list[str]:
     return lines
 
 
-def speed_table(work: Path, n_points: int = 500, n_frames: int = 60, size: tuple[int, int] = (640, 480)) -> list[str]:
-    """Markdown rows of the speed case: ``n_points`` points x ``n_frames`` frames at ``size``."""
+#: Methods of the speed comparison with OpenCV LK (issue 13) and of the profile table.
+SPEED_METHODS = ("clf", "auto", "cnlf")
+
+#: The shared clip of the speed comparison on real frames (KITTI, 1242x375).
+SPEED_CLIP = "kt3dmoseg_seq005_clip01"
+
+
+def speed_scenes(work: Path, shared: Path, n_points: int = 500, n_frames: int = 60,
+                 size: tuple[int, int] = (640, 480)) -> list[tuple[str, Path, Path]]:
+    """(title, frames folder, queries CSV) of the speed cases of issue 13.
+
+    The synthetic camera_motion scene at ``size`` with ``n_points`` uniformly drawn
+    points over ``n_frames`` frames (the points within 24 px of the border and those
+    the scene hides are still asked for), and the first 20 frames of the shared
+    ``SPEED_CLIP`` with the real-video queries of issue 11 (:func:`versus_lk_queries`)
+    on them, when the shared data is there.
+    """
     from condtrack_cli.frames.synthetic import make_scene, write_scene
 
-    folder = work / "speed"
-    write_scene(make_scene("camera_motion", seed=1, size=size, n_frames=n_frames), folder)
+    folder = write_scene(make_scene("camera_motion", seed=1, size=size, n_frames=n_frames), work / "speed")
     rng = np.random.default_rng(0)
     margin = 24
     xy = np.column_stack([rng.uniform(margin, size[0] - margin, n_points), rng.uniform(margin, size[1] - margin, n_points)])
     queries = work / "speed.queries.csv"
     write_queries(np.column_stack([np.arange(n_points), np.zeros(n_points), xy]), queries)
+    scenes = [(f"synthetic camera_motion {size[0]}x{size[1]}, {n_frames} frames, {n_points} points", folder, queries)]
+    clip = shared / SPEED_CLIP
+    if (clip / "tracks.csv").is_file():
+        rows = versus_lk_queries(load_gt_csv(clip / "tracks.csv"), oxford=False)
+        kitti = work / "speed_kitti.queries.csv"
+        write_queries(rows, kitti)
+        n_clip = len(list(clip.glob("*.png")))
+        scenes.append((f"{SPEED_CLIP} 1242x375, {n_clip} frames, {len(rows)} points", clip, kitti))
+    return scenes
+
+
+def run_plain_lk(folder: Path, queries: Path, out: Path) -> tuple[float, float, int, str]:
+    """Run the plain OpenCV script (``plain_lk.py``) as its own process: like :func:`run_track`."""
+    script = Path(__file__).with_name("plain_lk.py")
+    started = time.perf_counter()
+    process = subprocess.Popen([sys.executable, str(script), str(folder), str(queries), str(out)],
+                               stderr=subprocess.PIPE, stdout=subprocess.DEVNULL)
+    stderr = process.stderr.read().decode()
+    _, status, usage = os.wait4(process.pid, 0)
+    code = os.waitstatus_to_exitcode(status)
+    return time.perf_counter() - started, usage.ru_maxrss / 1024.0, code, (stderr.strip().splitlines() or [""])[-1]
+
+
+def speed_table(work: Path, shared: Path, repeats: int = 3) -> list[str]:
+    """Markdown: whole-process wall time of each method over the plain OpenCV LK script's, per speed scene (issue 13).
+
+    Per scene, ``repeats`` rounds each run the script (``plain_lk.py``: decode, LK
+    with the forward-backward check, CSV out) then each of ``SPEED_METHODS`` (``condtrack
+    track``, start-up and writing the HDF5 file included), one process each; the
+    table gives the median wall time, its ratio to the script's median of the same
+    run and the largest peak RSS.
+    """
+    methods = ("opencv-lk",) + SPEED_METHODS
     lines = [
-        f"Speed case: {n_points} points x {n_frames} frames at {size[0]}x{size[1]} (synthetic camera_motion scene, "
-        "uniformly drawn points). Whole-process wall time, including start-up and writing the HDF5 file.",
+        f"Whole-process wall time, median of {repeats} rounds run one after the other (script, then each method), "
+        "and its ratio to the plain OpenCV LK script (`condtrack_cli/evaluate/plain_lk.py`: calcOpticalFlowPyrLK "
+        "winSize 21, maxLevel 3, forward-backward check 1 px, CSV out) of the same run. Issue 13's targets: "
+        "clf <= 2x, auto <= 3x, cnlf <= 5x, peak RSS <= 300 MiB.",
         "",
-        "| method | wall (s) | s / frame | × stk | peak RSS (MiB) |",
-        "|---|---|---|---|---|",
     ]
-    stk_seconds = None
-    for method in registry.tracking_methods():
-        seconds, rss, code, message = run_track([str(folder), "-p", str(queries), "-m", method, "-o", str(work / f"speed.{method}.h5")])
-        if code != 0:
-            lines.append(f"| {method} | failed: {message} | | | |")
-            continue
-        stk_seconds = seconds if method == "stk" else stk_seconds
-        lines.append(f"| {method} | {seconds:.2f} | {seconds / n_frames:.4f} | {seconds / stk_seconds:.1f} | {rss:.0f} |")
-        print(lines[-1], file=sys.stderr)
+    for title, folder, queries in speed_scenes(work, shared):
+        times, peaks, failed = {m: [] for m in methods}, {m: 0.0 for m in methods}, {}
+        for _ in range(repeats):
+            for method in methods:
+                if method == "opencv-lk":
+                    seconds, rss, code, message = run_plain_lk(folder, queries, work / "speed.lk.csv")
+                else:
+                    seconds, rss, code, message = run_track(
+                        [str(folder), "-p", str(queries), "-m", method, "-o", str(work / f"speed.{method}.h5")])
+                if code:
+                    failed[method] = message
+                times[method].append(seconds)
+                peaks[method] = max(peaks[method], rss)
+        lk = float(np.median(times["opencv-lk"]))
+        lines += [f"Scene: {title}.", "", "| method | wall (s) | × OpenCV LK | peak RSS (MiB) |", "|---|---|---|---|"]
+        for method in methods:
+            if method in failed:
+                lines.append(f"| {method} | failed: {failed[method]} | | |")
+                continue
+            median = float(np.median(times[method]))
+            lines.append(f"| {method} | {median:.2f} | {median / lk:.1f} | {peaks[method]:.0f} |")
+            print(lines[-1], file=sys.stderr)
+        lines.append("")
+    return lines
+
+
+#: Stages of the profile table: (name, file suffix, function) whose cumulative time is the stage's;
+#: the stages are disjoint (none calls another).
+PROFILE_STAGES = (
+    ("frame decoding (cv2.imread)", "~", "<imread>"),
+    ("pyramids and gradients (robust.build_pyramid)", "motion/robust.py", "build_pyramid"),
+    ("global robust motion (robust.estimate_from_pyramids)", "motion/robust.py", "estimate_from_pyramids"),
+    ("local robust motion (local.local_field)", "motion/local.py", "local_field"),
+    ("SSD measurement (ssd.measure)", "measure/ssd.py", "measure"),
+)
+
+
+def profile_shares(profile: Path) -> list[tuple[str, float, int]]:
+    """(stage, share of the process's time, calls) from a cProfile file of ``condtrack track``.
+
+    The stages of PROFILE_STAGES; 'filters and pipeline, rest' is the pipeline's time
+    (pipeline.run) outside them; 'reading queries, writing the output' the track
+    command's outside the pipeline; 'start-up (imports, CLI, configuration)' the rest.
+    """
+    import pstats
+
+    stats = pstats.Stats(str(profile)).stats  # {(file, line, function): (calls, primitive, tottime, cumtime, callers)}
+    total = sum(entry[2] for entry in stats.values())
+
+    def cumulative(suffix: str, function: str) -> tuple[float, int]:
+        found = [(entry[3], entry[1]) for (file, _, name), entry in stats.items()
+                 if file.endswith(suffix) and name == function]
+        return max(found, default=(0.0, 0))  # the outer of wrappers with the same name (ssd.measure)
+
+    rows = [(name, *cumulative(suffix, function)) for name, suffix, function in PROFILE_STAGES]
+    pipeline, _ = cumulative("condtrack_cli/pipeline.py", "run")
+    command, _ = cumulative("cli/track.py", "track")
+    rows.append(("filters and pipeline, rest", pipeline - sum(seconds for _, seconds, _ in rows), 0))
+    rows.append(("reading queries, writing the output", command - pipeline, 0))
+    rows.append(("start-up (imports, CLI, configuration)", total - command, 0))
+    return [(name, seconds / total, calls) for name, seconds, calls in rows]
+
+
+def profile_table(work: Path, shared: Path) -> list[str]:
+    """Markdown: where the time goes (cProfile of one ``condtrack track`` process per method and speed scene)."""
+    scenes = speed_scenes(work, shared)
+    lines = [
+        "Share of one `condtrack track` process's time by stage (cProfile, which slows Python-level code more than "
+        "OpenCV/numpy calls), calls = calls of the stage's function. Scenes: "
+        + "; ".join(f"({chr(97 + i)}) {title}" for i, (title, _, _) in enumerate(scenes)) + ". "
+        "`python -m cProfile -o out.prof -m condtrack_cli track FRAMES -p QUERIES -m METHOD -o out.h5 -q`.",
+        "",
+        "| stage | " + " | ".join(f"{m} ({chr(97 + i)})" for i in range(len(scenes)) for m in SPEED_METHODS) + " |",
+        "|---|" + "---|" * (len(scenes) * len(SPEED_METHODS)),
+    ]
+    columns = []
+    for index, (_, folder, queries) in enumerate(scenes):
+        for method in SPEED_METHODS:
+            profile = work / f"profile.{index}.{method}.prof"
+            subprocess.run([sys.executable, "-m", "cProfile", "-o", str(profile), "-m", "condtrack_cli", "track",
+                            str(folder), "-p", str(queries), "-m", method, "-o", str(work / "profile.h5"), "-q"],
+                           check=True, stdout=subprocess.DEVNULL)
+            columns.append(profile_shares(profile))
+    for row, (name, _, _) in enumerate(columns[0]):
+        cells = [f"{column[row][1]:.0%}" + (f" ({column[row][2]})" if column[row][2] else "") for column in columns]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -434,6 +561,8 @@ def main() -> None:
     parser.add_argument("--support", type=Path, metavar="SEQUENCE",
                         help="only print the dominant model's one-step error by support on SEQUENCE (with tracks.csv)")
     parser.add_argument("--batch", action="store_true", help="only print the batch throughput table")
+    parser.add_argument("--speed", action="store_true",
+                        help="only print the speed comparison with OpenCV LK and the profile table (issue 13)")
     parser.add_argument("--shared-data", type=Path, default=REPO.parent / "shared" / "data",
                         help="folder of the real sets for the section against OpenCV LK")
     parser.add_argument("--versus-lk", action="store_true",
@@ -446,6 +575,12 @@ def main() -> None:
     if args.support:
         print("\n".join(support_table(args.support)))
         return
+    if args.speed:
+        shutil.rmtree(args.work / "speed", ignore_errors=True)
+        args.work.mkdir(parents=True, exist_ok=True)
+        print("\n".join(speed_table(args.work, args.shared_data) + ["## Profile", ""]
+                        + profile_table(args.work, args.shared_data)))
+        return
     if args.batch:
         shutil.rmtree(args.work / "batch", ignore_errors=True)
         print("\n".join(batch_table(args.work)))
@@ -453,7 +588,8 @@ def main() -> None:
     shutil.rmtree(args.work, ignore_errors=True)
     args.work.mkdir(parents=True)
     accuracy = accuracy_table(args.max_points, args.work)
-    speed = speed_table(args.work)
+    speed = speed_table(args.work, args.shared_data)
+    profile = profile_table(args.work, args.shared_data)
     batch = batch_table(args.work)
     versus_lk = versus_lk_section(args.work, args.shared_data)
     header = [
@@ -477,7 +613,7 @@ def main() -> None:
         "covP: share of the ground truth inside the predicted ellipse of level P % (ideal P/100); NEES: mean "
         "d^T C^-1 d over the rows with a finite covariance (ideal 2); finite: share of those rows.", "",
     ] + calibration_table(args.max_points, args.work)
-    text = "\n".join(header + accuracy + calibration + ["", "## Speed", ""] + speed + ["", "## Many clips", ""] + batch + [""] + versus_lk) + "\n"
+    text = "\n".join(header + accuracy + calibration + ["", "## Speed (issue 13)", ""] + speed + ["## Profile", ""] + profile + ["", "## Many clips", ""] + batch + [""] + versus_lk) + "\n"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     print(f"bench: wrote {args.out}", file=sys.stderr)

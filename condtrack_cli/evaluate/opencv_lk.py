@@ -1,13 +1,13 @@
 """The plain OpenCV Lucas-Kanade baseline of issue 11 (what a user would otherwise pick).
 
 ``cv2.calcOpticalFlowPyrLK`` with winSize 21, maxLevel 3 (four pyramid levels),
-30 iterations or 0.01 px, frame to frame, and a forward-backward check: a
-point is visible on frame k when both directions converged and the backward
-track returns within ``fb_threshold`` px of where it started. A point moves to
-the forward result whenever the forward pass converged (even when the check
-fails), and keeps its last position otherwise. Points are tracked forward from
-their query frame only (nothing before it: the 'first' query mode scores
-nothing there). No covariance. This is deliberately not condtrack's ``stk``
+30 iterations or 0.01 px, frame to frame, and a forward-backward check
+(:func:`plain_lk.track_step`): a point is visible on frame k when both
+directions converged and the backward track returns within ``fb_threshold`` px
+of where it started. A point moves to the forward result whenever the forward
+pass converged (even when the check fails), and keeps its last position
+otherwise. Points are tracked forward from their query frame only (nothing
+before it: the 'first' query mode scores nothing there). No covariance. This is deliberately not condtrack's ``stk``
 (which keeps the last position when the check fails and tracks backward too):
 it is the baseline as a user would write it, scored by the same code.
 """
@@ -16,24 +16,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 
+from condtrack_cli.evaluate.plain_lk import track_step
 from condtrack_cli.frames.readers import FrameSettings, open_frames
 from condtrack_cli.registry import method_code
 from condtrack_cli.types import Queries, Tracks
-
-WIN_SIZE = 21
-MAX_LEVEL = 3
-CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
-
-
-def _flow(first: np.ndarray, second: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """LK from ``first`` to ``second`` of (n, 2) float32 ``xy``: (n, 2) positions and (n,) converged flags."""
-    moved, status, _ = cv2.calcOpticalFlowPyrLK(
-        first, second, xy.reshape(-1, 1, 2), None, winSize=(WIN_SIZE, WIN_SIZE), maxLevel=MAX_LEVEL, criteria=CRITERIA,
-    )
-    return moved.reshape(-1, 2), status.ravel() == 1
 
 
 def opencv_lk(folder: str | Path, queries: Queries, fb_threshold: float = 1.0) -> Tracks:
@@ -51,13 +39,8 @@ def opencv_lk(folder: str | Path, queries: Queries, fb_threshold: float = 1.0) -
     for k, image in enumerate(frames):
         active = np.flatnonzero(queries.frame < k)
         if prev is not None and active.size:
-            start = current[active]
-            forward, ok_forward = _flow(prev, image, start)
-            back, ok_back = _flow(image, prev, forward)
-            returned = np.linalg.norm(back - start, axis=1) <= fb_threshold
-            current[active] = np.where(ok_forward[:, None], forward, start)
+            current[active], visible[active, k] = track_step(prev, image, current[active], fb_threshold)
             xy[active, k] = current[active]
-            visible[active, k] = ok_forward & ok_back & returned
         new = np.flatnonzero(queries.frame == k)
         xy[new, k], visible[new, k] = queries.xy[new], True
         prev = image

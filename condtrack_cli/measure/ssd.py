@@ -61,13 +61,13 @@ from typing import Literal
 import cv2
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
-from scipy import fft, ndimage, special, stats
+from scipy import fft, ndimage, special
 
 from condtrack_cli.config import StageSettings
 from condtrack_cli.registry import register
 from condtrack_cli.threads import fft_workers
 
-#: Points per FFT batch: bounds the temporary arrays (about 70 kB per point at the default sizes).
+#: Most points per group of the search: bounds the (P, G, G) temporaries (about 100 kB per point at the largest gate).
 _CHUNK = 512
 
 #: Gauss-Newton steps of the sub-pixel refinement (median change after 3 steps: 0.01 px on photographs).
@@ -195,7 +195,7 @@ def estimate_noise_sigma(gray: np.ndarray) -> float:
     gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)
     structure = cv2.boxFilter(gx * gx + gy * gy, -1, (7, 7), borderType=cv2.BORDER_REFLECT)[1:-1, 1:-1]
     flattest = structure <= np.quantile(structure, 0.25)
-    sigma = float(np.median(np.abs(response[flattest])) / (stats.norm.ppf(0.75) * 6.0))
+    sigma = float(np.median(np.abs(response[flattest])) / (special.ndtri(0.75) * 6.0))
     return max(sigma, _QUANTISATION_STD)
 
 
@@ -207,7 +207,7 @@ def _noise_threshold(sigma: float, m: int, alpha: float) -> float:
     quantile q, i.e. r < sigma_d^2 (q + sqrt(2 m))^2 / 2.
     """
     sigma_d2 = 2.0 * sigma**2
-    q = stats.norm.ppf(1.0 - alpha)
+    q = special.ndtri(1.0 - alpha)
     return sigma_d2 * (q + np.sqrt(2.0 * m)) ** 2 / 2.0  # eq. (10) solved for r
 
 
@@ -318,7 +318,7 @@ def _response(
     # law. With N = 49 at 5%, the uniform law is rejected when KL > 0.67 nat: D_k fills less than half of W.
     entropy = -special.xlogy(d, d).sum(axis=(1, 2))
     kl_uniform = np.log(n_available) - entropy
-    critical = stats.chi2.ppf(1.0 - settings.uniform_alpha, np.maximum(n_available - 1, 1))
+    critical = 2.0 * special.gammaincinv(np.maximum(n_available - 1, 1) / 2, 1.0 - settings.uniform_alpha)  # chi2 quantile
     uniform_rejected = 2.0 * n_available * kl_uniform > critical
     det = R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2
     rxx, rxy, ryy = R[:, 0, 0, None, None], R[:, 0, 1, None, None], R[:, 1, 1, None, None]
@@ -388,50 +388,40 @@ def _ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, 
 
     Element [p, i, j] is the matching cost between templates[p] and the frame patch
     centred on (centres[p, 0] + j - reach, centres[p, 1] + i - reach), frame border
-    replicated. ``cost`` 'ssd': the SSD, sum I^2 - 2 sum I T + sum T^2, both
-    window sums as FFT convolutions (with a box and with the flipped template)
-    sharing one inverse transform, after removing each template's mean from both
-    images (the SSD is unchanged, the cancellation smaller). 'zero_mean': the SSD
-    after giving the frame patch the template's mean, sum [T' - I']^2 (T', I'
-    mean-free). 'normalised': after giving it the template's mean and contrast,
-    sum [T' - a I']^2 = 2 sum T'^2 (1 - rho) (a = |T'| / |I'|, rho their
-    correlation; a flat frame patch has rho = 0). Both from the window sums of
-    I and I^2 (cumulative sums) and of I T' (FFT); see :func:`matching_cost`.
+    replicated. From each point's frame patch less the template's mean (I, which
+    keeps the cancellation small) and T' = T - mean T: the window sums of I and I^2
+    (cumulative sums) and of I T' (FFT correlation). ``cost`` 'ssd': the SSD,
+    sum [T' - I]^2 = sum I^2 - 2 sum I T' + sum T'^2. 'zero_mean': the SSD after
+    giving the frame patch the template's mean, sum [T' - I']^2 (T', I' mean-free).
+    'normalised': after giving it the template's mean and contrast, sum [T' - a I']^2
+    = 2 sum T'^2 (1 - rho) (a = |T'| / |I'|, rho their correlation; a flat frame
+    patch has rho = 0). See :func:`matching_cost`.
     """
     height, width = gray.shape
     t = templates.shape[1]
     span = np.arange(-(reach + t // 2), reach + t // 2 + 1)
     g = 2 * reach + 1
     length = fft.next_fast_len(len(span), real=True)  # >= the patch side: the kept outputs do not wrap
-    box = _spectrum(np.ones((1, t, t)), length)
     image = np.ascontiguousarray(gray).ravel()
-    out = np.empty((len(templates), g, g))
-    kept = slice(t - 1, t - 1 + g)
-    for start in range(0, len(templates), _CHUNK):
-        stop = min(start + _CHUNK, len(templates))
-        rows = np.clip(centres[start:stop, 1, None] + span, 0, height - 1)
-        cols = np.clip(centres[start:stop, 0, None] + span, 0, width - 1)
-        tmpl = templates[start:stop].astype(np.float64)
-        mean = tmpl.mean(axis=(1, 2), keepdims=True)
-        tmpl -= mean
-        energy = (tmpl * tmpl).sum(axis=(1, 2))[:, None, None]  # sum T'^2
-        patch = image.take(rows[:, :, None] * width + cols[:, None, :]) - mean
-        cross = _spectrum(patch, length) * _spectrum(tmpl[:, ::-1, ::-1], length)  # sum_y T'(y) I(z + y)
-        if cost == "ssd":
-            squares = _spectrum(patch * patch, length) * box  # sum_y I(z + y)^2
-            window = fft.irfft2(squares - 2.0 * cross, s=(length, length), workers=fft_workers())[:, kept, kept]
-            out[start:stop] = np.maximum(window + energy, 0.0)  # eq. (6)
-            continue
-        sum_it = fft.irfft2(cross, s=(length, length), workers=fft_workers())[:, kept, kept]
-        sum_i, sum_sq = _window_sums(patch, t, g), _window_sums(patch * patch, t, g)
-        spread = np.maximum(sum_sq - sum_i * sum_i / (t * t), 0.0)  # sum I'^2
-        if cost == "zero_mean":
-            out[start:stop] = np.maximum(spread - 2.0 * sum_it + energy, 0.0)
-            continue
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rho = np.where(spread > 0, sum_it / np.sqrt(energy * spread), 0.0)
-        out[start:stop] = 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
-    return out
+    tmpl = templates.astype(np.float64)
+    mean = tmpl.mean(axis=(1, 2), keepdims=True)
+    tmpl -= mean
+    energy = (tmpl * tmpl).sum(axis=(1, 2))[:, None, None]  # sum T'^2
+    rows = np.clip(centres[:, 1, None] + span, 0, height - 1)
+    cols = np.clip(centres[:, 0, None] + span, 0, width - 1)
+    patch = image.take(rows[:, :, None] * width + cols[:, None, :]) - mean
+    cross = _spectrum(patch, length) * _spectrum(tmpl[:, ::-1, ::-1], length)  # sum_y T'(y) I(z + y)
+    sum_it = fft.irfft2(cross, s=(length, length), workers=fft_workers())[:, t - 1 : t - 1 + g, t - 1 : t - 1 + g]
+    sum_sq = _window_sums(patch * patch, t, g)
+    if cost == "ssd":
+        return np.maximum(sum_sq - 2.0 * sum_it + energy, 0.0)  # eq. (6)
+    sum_i = _window_sums(patch, t, g)
+    spread = np.maximum(sum_sq - sum_i * sum_i / (t * t), 0.0)  # sum I'^2
+    if cost == "zero_mean":
+        return np.maximum(spread - 2.0 * sum_it + energy, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = np.where(spread > 0, sum_it / np.sqrt(energy * spread), 0.0)
+    return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
 
 
 def _window_sums(values: np.ndarray, t: int, g: int) -> np.ndarray:
@@ -532,17 +522,46 @@ def measure(
     predicted = np.asarray(predicted, np.float64).reshape(-1, 2)
     gate_cov = np.asarray(gate_cov, np.float64).reshape(-1, 2, 2)
     count = len(predicted)
+    known = np.isfinite(predicted).all(axis=1)
+    z, R = np.full((count, 2), np.nan), _infinite(count)
+    residual, informative = np.full(count, np.nan), np.zeros(count, bool)
+    if not known.any():
+        return Measurement(z, R, residual, informative)
+    half_sizes = _half_sizes(gate_cov, settings)
+    for points in _search_groups(half_sizes, known, settings):
+        part = _measure_group(gray, templates[points], predicted[points], gate_cov[points],
+                              half_sizes[points], settings, sigma)
+        z[points], R[points], residual[points], informative[points] = part.z, part.R, part.residual, part.informative
+    return Measurement(z, R, residual, informative)
+
+
+def _search_groups(half_sizes: np.ndarray, known: np.ndarray, settings: SSDSettings) -> list[np.ndarray]:
+    """Index arrays of the ``known`` points by class of search half-size, at most _CHUNK points each.
+
+    The classes' upper bounds grow by half from ``search_min``; a group's surfaces cover its
+    largest gate, so the group computes at most about 1.5^2 as many candidates as its gates hold,
+    instead of every point paying for the largest gate of the frame.
+    """
+    bounds = [settings.search_min]
+    while bounds[-1] < settings.search_max:
+        bounds.append(min(int(np.ceil(1.5 * bounds[-1])), settings.search_max))
+    classes = np.searchsorted(bounds, half_sizes)
+    groups = []
+    for index in range(len(bounds)):
+        members = np.flatnonzero(known & (classes == index))
+        groups += [members[start : start + _CHUNK] for start in range(0, len(members), _CHUNK)]
+    return groups
+
+
+def _measure_group(gray: np.ndarray, templates: np.ndarray, predicted: np.ndarray,
+                   gate_cov: np.ndarray, half_sizes: np.ndarray, settings: SSDSettings, sigma: float) -> Measurement:
+    """:func:`measure` of P points with finite predictions and their (P,) search half-sizes."""
+    count = len(predicted)
     t = templates.shape[1]
     half = settings.support // 2
-    known = np.isfinite(predicted).all(axis=1)
-    if count == 0 or not known.any():
-        nan = np.full((count, 2), np.nan)
-        return Measurement(nan, _infinite(count), np.full(count, np.nan), np.zeros(count, bool))
-
-    half_sizes = _half_sizes(gate_cov, settings)
-    largest = int(half_sizes[known].max())
+    largest = int(half_sizes.max())
     reach = largest + half  # the candidates plus the margin of the support W(z_k)
-    centres = np.where(known[:, None], np.rint(predicted), 0.0).astype(np.intp)
+    centres = np.rint(predicted).astype(np.intp)
     grid = np.arange(-reach, reach + 1)
     height, width = gray.shape
     x = centres[:, 0, None, None] + grid[None, None, :]  # (P, 1, G) candidate columns
@@ -560,11 +579,7 @@ def measure(
         quadratic = (c * nu_x**2 - 2 * b * nu_x * nu_y + a * nu_y**2) / np.where(proper, det, 1.0)
     mahalanobis = np.where(proper, quadratic, 0.0)  # nu^T S^-1 nu; a degenerate S leaves only the square
     chebyshev = np.maximum(np.abs(dx), np.abs(dy))
-    gate = (
-        known[:, None, None]
-        & (chebyshev <= half_sizes[:, None, None])
-        & ((mahalanobis <= settings.gamma) | (chebyshev <= settings.search_min))
-    )
+    gate = (chebyshev <= half_sizes[:, None, None]) & ((mahalanobis <= settings.gamma) | (chebyshev <= settings.search_min))
     candidates = r_full[:, inner, inner]
     gated = np.where(gate, candidates, np.inf)
     flat = gated.reshape(count, -1).argmin(axis=1)

@@ -250,10 +250,10 @@ class _Planes:
         self.groups = [np.empty(lay.padded + (min(4, count - start),), np.float32) for start in range(0, count, 4)]
 
     def block_sums(self, planes: list[np.ndarray]) -> np.ndarray:
-        """(hn, wn, count) float64 sums of each (h_padded, w_padded) plane over the layout's blocks."""
+        """(hn, wn, count) float32 sums of each (h_padded, w_padded) plane over the layout's blocks."""
         block = self.lay.block
         rows, cols = self.lay.node_shape
-        sums = np.zeros((rows, cols, len(planes)))
+        sums = np.zeros((rows, cols, len(planes)), np.float32)
         for start, group in zip(range(0, len(planes), 4), self.groups):
             group = cv2.merge(planes[start : start + 4], group)
             if block > 1:
@@ -367,7 +367,7 @@ def _normal_equations(sums: np.ndarray, lay: _Layout, model: str) -> tuple[list,
     monomials = _MONOMIALS[model]
     m = len(monomials)
     orders = sorted({(ai + aj, bi + bj) for ai, bi in monomials for aj, bj in monomials})
-    moments = {order: np.ascontiguousarray(np.moveaxis(moment, 2, 0))  # (10, hn, wn): (support, node) contiguous
+    moments = {order: np.ascontiguousarray(np.moveaxis(moment, 2, 0), np.float64)  # (10, hn, wn) contiguous
                for order, moment in _window_sums(sums, lay, orders).items()}
     product = {(0, 0): 0, (0, 1): 2, (1, 0): 2, (1, 1): 4}  # g_c g_c' -> first channel of its support pair
     matrix = [[None] * (2 * m) for _ in range(2 * m)]
@@ -596,7 +596,8 @@ def _choose(systems: _Systems, residual: np.ndarray, level: _Level,
     for index, plane in enumerate((weights * (systems.gx * systems.gx + systems.gy * systems.gy),
                                    weights * after * after, weights)):
         _split_into(planes, 2 * index, plane, level.dominant_f)
-    totals = np.moveaxis(_window_sums(level.work.totals.block_sums(planes), level.lay, ((0, 0),))[0, 0], 2, 0)
+    totals = np.moveaxis(_window_sums(level.work.totals.block_sums(planes), level.lay, ((0, 0),))[0, 0], 2, 0
+                         ).astype(np.float64)
     energy, squares, weight_sum = totals[0:2], totals[2:4], totals[4:6]
     chosen = energy[0] < energy[1]  # False: dominant, True: non-dominant
 

@@ -268,16 +268,20 @@ class Pyramid:
 
 def build_pyramid(gray: np.ndarray, levels: int) -> Pyramid:
     """Gaussian pyramid (``cv2.pyrDown``) of a (H, W) frame, with gradients, ``levels`` deep."""
-    base = cv2.GaussianBlur(np.asarray(gray, np.float32), (0, 0), PRESMOOTH_SIGMA)
-    stacks = []
-    image = base
-    for level in range(levels):
+    return deepen(Pyramid(cv2.GaussianBlur(np.asarray(gray, np.float32), (0, 0), PRESMOOTH_SIGMA), []), levels)
+
+
+def deepen(pyramid: Pyramid, levels: int) -> Pyramid:
+    """``pyramid`` with coarser levels appended (``cv2.pyrDown`` of the coarsest image) until ``levels`` deep."""
+    stacks = list(pyramid.levels)
+    image = stacks[-1][:, :, 0] if stacks else pyramid.base
+    for level in range(len(stacks), levels):
         if level:
             image = cv2.pyrDown(image)
         gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
         gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
         stacks.append(cv2.merge((image, gx, gy)))
-    return Pyramid(base, stacks)
+    return Pyramid(pyramid.base, stacks)
 
 
 def usable_levels(shape: tuple[int, int], levels: int) -> int:
@@ -288,9 +292,11 @@ def usable_levels(shape: tuple[int, int], levels: int) -> int:
 def frame_pyramid(frame: Frame, levels: int) -> Pyramid:
     """``build_pyramid`` of ``frame.gray``, cached in ``frame.cache['motion.pyramid']``, ``levels`` deep."""
     cached = frame.cache.get("motion.pyramid")
-    if cached is None or len(cached.levels) < levels:
+    if cached is None:
         cached = build_pyramid(frame.gray, levels)
-        frame.cache["motion.pyramid"] = cached
+    elif len(cached.levels) < levels:  # a deeper one asked for later: the cached levels are kept
+        cached = deepen(cached, levels)
+    frame.cache["motion.pyramid"] = cached
     return Pyramid(cached.base, cached.levels[:levels])
 
 
