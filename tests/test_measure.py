@@ -11,16 +11,10 @@ from conftest import load_asset
 from pydantic import ValidationError
 
 from condtrack_cli import registry
-from condtrack_cli.measure.ssd import (
-    Measurement,
-    SSDMeasure,
-    SSDSettings,
-    estimate_noise_sigma,
-    extract_templates,
-    matching_cost,
-    measure,
-    response_covariance,
-)
+from condtrack_cli.measure.noise import estimate_noise_sigma
+from condtrack_cli.measure.response import response_covariance, unit_sum_c
+from condtrack_cli.measure.ssd import Measurement, SSDMeasure, SSDSettings, measure
+from condtrack_cli.measure.surfaces import extract_templates, matching_cost
 
 SIGMA = 3.0  # acquisition noise std of the synthetic surfaces (grey levels)
 M = 121  # template pixels (11 x 11)
@@ -97,12 +91,11 @@ def test_equalisation_changes_R_only_when_peaks_are_within_the_noise():
 
 def test_c_is_the_papers_normaliser():
     """unit_sum c: sum_W exp(-c r) = 1 exactly, so D_k needs no other normalisation (eq. 8)."""
-    from condtrack_cli.measure.ssd import _unit_sum_c
 
     rng = np.random.default_rng(1)
     r = NOISE_R * (1 + rng.uniform(0, 30, (20, N * N)))
     r[:, 0] = NOISE_R * rng.uniform(0.5, 1.5, 20)
-    c = _unit_sum_c(r, np.ones(r.shape, bool), r.min(axis=1))
+    c = unit_sum_c(r, np.ones(r.shape, bool), r.min(axis=1))
     np.testing.assert_allclose(np.exp(-c[:, None] * r).sum(axis=1), 1.0, rtol=1e-9)
 
 

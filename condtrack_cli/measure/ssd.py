@@ -58,30 +58,17 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-import cv2
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
-from scipy import fft, ndimage, special
 
 from condtrack_cli.config import StageSettings
+from condtrack_cli.measure.noise import estimate_noise_sigma, noise_threshold
+from condtrack_cli.measure.response import infinite_covariance, response
+from condtrack_cli.measure.surfaces import extract_templates, matching_cost, refine, ssd_surfaces
 from condtrack_cli.registry import register
-from condtrack_cli.threads import fft_workers
 
 #: Most points per group of the search: bounds the (P, G, G) temporaries (about 100 kB per point at the largest gate).
 _CHUNK = 512
-
-#: Gauss-Newton steps of the sub-pixel refinement (median change after 3 steps: 0.01 px on photographs).
-_REFINE_STEPS = 3
-
-#: Cells within 2 px (Chebyshev) inside each (a, b) slice of a (P, a, b) stack, none across slices.
-_WITHIN_2PX = np.zeros((3, 5, 5), bool)
-_WITHIN_2PX[1] = True
-
-#: Std of the rounding of grey levels to integers (grey levels): the least noise of an 8-bit frame.
-_QUANTISATION_STD = 1.0 / np.sqrt(12.0)
-
-#: Immerkær's (1996) operator: the difference of two Laplacians; zero on planes, sum of squares 36.
-_IMMERKAER = np.array([[1, -2, 1], [-2, 4, -2], [1, -2, 1]], np.float32)
 
 
 class SSDSettings(StageSettings):
@@ -146,227 +133,6 @@ class Measurement:
     informative: np.ndarray
 
 
-def extract_templates(gray: np.ndarray, xy: np.ndarray, size: int) -> np.ndarray:
-    """(M, size, size) float32 patches of ``gray`` centred on the sub-pixel positions ``xy``.
-
-    gray: (H, W) float32 grey levels; xy: (M, 2) finite positions (px); size: odd side.
-    Patch pixel (i, j) is ``gray`` at (x + j - size//2, y + i - size//2), bilinear,
-    with the border replicated (coordinates clamped to the frame).
-    """
-    height, width = gray.shape
-    xy = np.asarray(xy, np.float64).reshape(-1, 2)
-    grid = np.arange(size) - size // 2
-    x = np.clip(xy[:, 0, None] + grid, 0, width - 1)  # (M, size), clamped: border replicate
-    y = np.clip(xy[:, 1, None] + grid, 0, height - 1)
-    x0, y0 = np.floor(x).astype(np.intp), np.floor(y).astype(np.intp)
-    x1, y1 = np.minimum(x0 + 1, width - 1), np.minimum(y0 + 1, height - 1)
-    wx, wy = (x - x0)[:, None, :], (y - y0)[:, :, None]
-    flat = np.ascontiguousarray(gray).ravel()
-    rows0, rows1 = (y0 * width)[:, :, None], (y1 * width)[:, :, None]
-    cols0, cols1 = x0[:, None, :], x1[:, None, :]
-    top = flat.take(rows0 + cols0) * (1 - wx) + flat.take(rows0 + cols1) * wx
-    bottom = flat.take(rows1 + cols0) * (1 - wx) + flat.take(rows1 + cols1) * wx
-    return (top * (1 - wy) + bottom * wy).astype(np.float32)
-
-
-def estimate_noise_sigma(gray: np.ndarray) -> float:
-    """Acquisition noise std of one frame (grey levels).
-
-    Immerkær's operator N = [[1,-2,1],[-2,4,-2],[1,-2,1]] (J. Immerkær, "Fast noise
-    variance estimation", CVIU 64(2), 1996) cancels planes and leaves 36 sigma^2 of
-    white noise. Immerkær averages |I * N| over the whole frame, which counts
-    texture and edges as noise (2x too high on a textured photograph); here the
-    response is read only where the image has the least structure (the quarter of
-    pixels with the smallest 7 x 7 mean squared gradient of the image smoothed by a
-    Gaussian of std 2 px, smoothing that leaves the structure measure free of the
-    noise), and its scale is the median absolute value (robust to the remaining
-    edges): sigma = median |I * N| / (0.6745 * 6). Measured: sigma = 3 added to
-    the camera, coffee and astronaut photographs reads 3.0-3.3 (whole-frame
-    Immerkær: 4.2-6.2); a frame that is all texture (gravel) still reads high.
-    The result is at least 1/sqrt(12), the rounding noise of 8-bit frames, so that
-    a noise-free synthetic frame does not give 0.
-    """
-    image = np.asarray(gray, np.float32)
-    if min(image.shape) < 3:
-        raise ValueError(f"need a frame of at least 3 x 3 pixels, got {image.shape}")
-    response = cv2.filter2D(image, cv2.CV_32F, _IMMERKAER, borderType=cv2.BORDER_REFLECT)[1:-1, 1:-1]
-    smooth = cv2.GaussianBlur(image, (0, 0), 2.0)
-    gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)
-    gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)
-    structure = cv2.boxFilter(gx * gx + gy * gy, -1, (7, 7), borderType=cv2.BORDER_REFLECT)[1:-1, 1:-1]
-    flattest = structure <= np.quantile(structure, 0.25)
-    sigma = float(np.median(np.abs(response[flattest])) / (special.ndtri(0.75) * 6.0))
-    return max(sigma, _QUANTISATION_STD)
-
-
-def _noise_threshold(sigma: float, m: int, alpha: float) -> float:
-    """Largest residual consistent with noise at level ``alpha`` (grey levels^2), eq. (10).
-
-    sqrt(2 r / sigma_d^2) - sqrt(2 m) ~ N(0, 1) with sigma_d^2 = 2 sigma^2 and m
-    template pixels; r is consistent with noise when that is below the (1 - alpha)
-    quantile q, i.e. r < sigma_d^2 (q + sqrt(2 m))^2 / 2.
-    """
-    sigma_d2 = 2.0 * sigma**2
-    q = special.ndtri(1.0 - alpha)
-    return sigma_d2 * (q + np.sqrt(2.0 * m)) ** 2 / 2.0  # eq. (10) solved for r
-
-
-def _unit_sum_c(r: np.ndarray, available: np.ndarray, r_min: np.ndarray) -> np.ndarray:
-    """(P,) the c of eq. (8) with sum over W of exp(-c r) = 1; +inf where min r = 0.
-
-    r: (P, k) residuals, available: (P, k) bool, r_min: (P,) their minimum.
-    g(c) = log sum exp(-c (r - r_min)) - c r_min is convex and decreasing from
-    g(0) = log k > 0, so Newton's method from c = 0 increases monotonically to the root.
-    """
-    delta = np.where(available, r - r_min[:, None], 0.0)
-    positive = r_min > 0
-    c = np.zeros(len(r))
-    for _ in range(200):
-        w = np.where(available, np.exp(-c[:, None] * delta), 0.0)
-        total = w.sum(axis=1)
-        g = np.log(total) - c * r_min
-        slope = -(w * delta).sum(axis=1) / total - r_min
-        active = positive & (np.abs(g) > 1e-12)
-        if not active.any():
-            break
-        c = np.where(active, c - g / np.where(active, slope, 1.0), c)
-    return np.where(positive, c, np.inf)
-
-
-def _parabola_offset(left: np.ndarray, centre: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """Vertex of the parabola through (-1, left), (0, centre), (1, right), clamped to [-0.5, 0.5] px.
-
-    0 where the three do not make a finite upward parabola (a neighbour outside the frame, a flat run).
-    """
-    with np.errstate(invalid="ignore"):
-        curvature = left - 2.0 * centre + right
-        usable = np.isfinite(curvature) & (curvature > 0)
-        offset = np.where(usable, (left - right) / (2.0 * np.where(usable, curvature, 1.0)), 0.0)
-    return np.clip(offset, -0.5, 0.5)
-
-
-def _parabola_vertex(residuals: np.ndarray) -> np.ndarray:
-    """(P, 2) offset (dx, dy) of the separable parabola's vertex from the centre of (P, n, n) residuals."""
-    mid = residuals.shape[1] // 2
-    centre = residuals[:, mid, mid]
-    dx = _parabola_offset(residuals[:, mid, mid - 1], centre, residuals[:, mid, mid + 1])
-    dy = _parabola_offset(residuals[:, mid - 1, mid], centre, residuals[:, mid + 1, mid])
-    return np.stack([dx, dy], axis=1)
-
-
-def _separate(cells: np.ndarray, row: np.ndarray, col: np.ndarray) -> np.ndarray:
-    """(P,) True where some of ``cells`` (P, a, b) are 3 px or more (Chebyshev) from the group of cell (row, col).
-
-    The group grows from (row, col) through cells at most 2 px apart, so that a steep
-    oblique valley, which the grid samples with one-cell gaps, stays one group.
-    """
-    group = np.zeros_like(cells)
-    index = np.arange(len(cells))
-    group[index, row, col] = cells[index, row, col]
-    while True:
-        grown = cells & ndimage.binary_dilation(group, structure=_WITHIN_2PX)
-        if np.array_equal(grown, group):
-            return (cells & ~group).any(axis=(1, 2))
-        group = grown
-
-
-def _response(
-    residuals: np.ndarray, sigma: float, m: int, settings: SSDSettings, offset: np.ndarray | None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """R_k, its informativeness and c on (P, n, n) supports; see :func:`response_covariance`.
-
-    Returns R (P, 2, 2) before the infinite substitution, informative (P,) bool and c (P,) (1/grey levels^2).
-    """
-    if not sigma > 0:
-        raise ValueError(f"the noise std sigma must be positive, got {sigma}")
-    r = np.asarray(residuals, np.float64)
-    count, n = r.shape[0], r.shape[1]
-    half = n // 2
-    available = np.isfinite(r)
-    empty = ~available.any(axis=(1, 2))  # no residual at all: computed on zeros, reported uninformative
-    available |= empty[:, None, None]
-    n_available = available.sum(axis=(1, 2))
-    r = np.where(available, r, np.inf)
-    r[empty] = 0.0
-    r_raw, r_min = r, r.min(axis=(1, 2))
-    if settings.equalise_alpha is not None:  # eq. (10): residuals within the noise are all set to the lowest one
-        within_noise = available & (r < _noise_threshold(sigma, m, settings.equalise_alpha))
-        r = np.where(within_noise, r_min[:, None, None], r)
-    flat_r = r.reshape(count, -1)
-    flat_available = available.reshape(count, -1)
-    if settings.c_rule == "unit_sum":
-        c = _unit_sum_c(flat_r, flat_available, r_min)
-    else:
-        c = np.full(count, 1.0 / (4.0 * sigma**2))  # 1 / (2 sigma_d^2): Gaussian likelihood of the patch
-    excess = np.where(available, r - r_min[:, None, None], np.inf)
-    with np.errstate(invalid="ignore"):
-        energy = np.where(excess == 0, 0.0, c[:, None, None] * excess)  # c (r - r_min), with inf * 0 = 0
-    log_d = -energy - special.logsumexp(-energy, axis=(1, 2), keepdims=True)
-    d = np.exp(log_d)  # eq. (8): D_k = exp(-c r_k) / sum_W exp(-c r_k)
-
-    delta = _parabola_vertex(r_raw) if offset is None else np.asarray(offset, np.float64)  # z_k - centre (px)
-    grid = np.arange(n) - half
-    du = grid[None, None, :] - delta[:, 0, None, None]  # (P, n, n) x - x_k
-    dv = grid[None, :, None] - delta[:, 1, None, None]  # (P, n, n) y - y_k
-    sxx = (d * du * du).sum(axis=(1, 2))  # eq. (9): sigma_uv = sum_W D_k (u - u_k)(v - v_k)
-    sxy = (d * du * dv).sum(axis=(1, 2))
-    syy = (d * dv * dv).sum(axis=(1, 2))
-    R = np.stack([np.stack([sxx, sxy], -1), np.stack([sxy, syy], -1)], -2) + settings.r_floor * np.eye(2)
-
-    # Chi-square goodness of fit in its likelihood-ratio (G) form, one pseudo-observation per available
-    # cell: G = 2 N KL(D_k || law), asymptotically chi-square with N - 1 degrees of freedom for the uniform
-    # law. With N = 49 at 5%, the uniform law is rejected when KL > 0.67 nat: D_k fills less than half of W.
-    entropy = -special.xlogy(d, d).sum(axis=(1, 2))
-    kl_uniform = np.log(n_available) - entropy
-    critical = 2.0 * special.gammaincinv(np.maximum(n_available - 1, 1) / 2, 1.0 - settings.uniform_alpha)  # chi2 quantile
-    uniform_rejected = 2.0 * n_available * kl_uniform > critical
-    det = R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2
-    rxx, rxy, ryy = R[:, 0, 0, None, None], R[:, 0, 1, None, None], R[:, 1, 1, None, None]
-    quadratic = ryy * du * du - 2 * rxy * du * dv + rxx * dv * dv
-    log_g = np.where(available, -0.5 * quadratic / det[:, None, None], -np.inf)  # N(z_k, R_k) on W
-    log_g = np.where(available, log_g - special.logsumexp(log_g, axis=(1, 2), keepdims=True), 0.0)
-    kl_gauss = (special.xlogy(d, d) - d * log_g).sum(axis=(1, 2))
-    peak = available & (energy <= np.log(1.0 / settings.ambiguity_ratio))  # D_k >= ambiguity_ratio * max D_k
-    centre = np.full(count, half)
-    one_mode = ~_separate(peak, centre, centre)
-    informative = ~empty & (n_available >= 2) & uniform_rejected & (kl_gauss < kl_uniform) & one_mode
-    return R, informative, c
-
-
-def _infinite(count: int) -> np.ndarray:
-    """(count, 2, 2) the covariance of no information: diagonal +inf, off-diagonal 0."""
-    R = np.zeros((count, 2, 2))
-    R[:, [0, 1], [0, 1]] = np.inf
-    return R
-
-
-def response_covariance(
-    residuals: np.ndarray, sigma: float, m: int, settings: SSDSettings, *, offset: np.ndarray | None = None
-) -> np.ndarray:
-    """R_k (P, 2, 2) in px^2 from residual surfaces, paper eqs. (8)-(10) and the uniform test.
-
-    residuals: (P, n, n) r_k on the support W(z_k), centred on the integer minimum
-    (grey levels^2; +inf marks a cell without a residual, e.g. outside the frame).
-    sigma: acquisition noise std (grey levels). m: template pixel count (t^2).
-    offset: (P, 2) sub-pixel z_k minus the centre cell (px, within +-0.5); default: the
-    vertex of the separable parabola through the centre 3 x 3 of ``residuals``.
-
-    1. Eq. (10): cells whose residual is consistent with noise at ``equalise_alpha``
-       are set to the lowest residual (none is favoured over another).
-    2. Eq. (8): D_k = exp(-c r_k), normalised over W (c per ``c_rule``, module docstring).
-    3. Eq. (9): R_k = sum_W D_k (z - z_k)(z - z_k)^T about the sub-pixel minimum z_k,
-       plus ``r_floor`` * I.
-    4. R_k is infinite (diagonal +inf) unless: the chi-square test rejects the uniform
-       law for D_k at ``uniform_alpha`` (a flat surface, an occluded patch, does not);
-       the Gaussian N(z_k, R_k) fits D_k better than the uniform law; and the cells with
-       D_k >= ``ambiguity_ratio`` * max D_k form one group (two peaks 3 px or more apart
-       do not; cells 2 px apart are grouped so that a steep oblique valley, which the
-       grid samples with one-cell gaps, stays one group).
-    """
-    R, informative, _ = _response(residuals, sigma, m, settings, offset)
-    return np.where(informative[:, None, None], R, _infinite(len(R)))
-
-
 def _half_sizes(gate_cov: np.ndarray, settings: SSDSettings) -> np.ndarray:
     """(P,) search half-size clip(ceil(sqrt(gamma lambda_max(S))), search_min, search_max) (px)."""
     a, b, c = gate_cov[:, 0, 0], gate_cov[:, 0, 1], gate_cov[:, 1, 1]
@@ -375,127 +141,6 @@ def _half_sizes(gate_cov: np.ndarray, settings: SSDSettings) -> np.ndarray:
         extent = np.ceil(np.sqrt(settings.gamma * largest))
     extent = np.where(np.isfinite(extent), extent, settings.search_max)
     return np.clip(extent, settings.search_min, settings.search_max).astype(np.intp)
-
-
-def _spectrum(values: np.ndarray, length: int) -> np.ndarray:
-    """(P, length, length // 2 + 1) 2-D real FFT of (P, a, b) arrays zero-padded to length x length."""
-    return fft.rfft2(values, s=(length, length), workers=fft_workers())
-
-
-def _ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, reach: int,
-                  cost: str = "ssd") -> np.ndarray:
-    """(P, G, G) float64 r_k (eq. 6) at integer candidates centres + (dx, dy), |dx|, |dy| <= reach, G = 2 reach + 1.
-
-    Element [p, i, j] is the matching cost between templates[p] and the frame patch
-    centred on (centres[p, 0] + j - reach, centres[p, 1] + i - reach), frame border
-    replicated. From each point's frame patch less the template's mean (I, which
-    keeps the cancellation small) and T' = T - mean T: the window sums of I and I^2
-    (cumulative sums) and of I T' (FFT correlation). ``cost`` 'ssd': the SSD,
-    sum [T' - I]^2 = sum I^2 - 2 sum I T' + sum T'^2. 'zero_mean': the SSD after
-    giving the frame patch the template's mean, sum [T' - I']^2 (T', I' mean-free).
-    'normalised': after giving it the template's mean and contrast, sum [T' - a I']^2
-    = 2 sum T'^2 (1 - rho) (a = |T'| / |I'|, rho their correlation; a flat frame
-    patch has rho = 0). See :func:`matching_cost`.
-    """
-    height, width = gray.shape
-    t = templates.shape[1]
-    span = np.arange(-(reach + t // 2), reach + t // 2 + 1)
-    g = 2 * reach + 1
-    length = fft.next_fast_len(len(span), real=True)  # >= the patch side: the kept outputs do not wrap
-    image = np.ascontiguousarray(gray).ravel()
-    tmpl = templates.astype(np.float64)
-    mean = tmpl.mean(axis=(1, 2), keepdims=True)
-    tmpl -= mean
-    energy = (tmpl * tmpl).sum(axis=(1, 2))[:, None, None]  # sum T'^2
-    rows = np.clip(centres[:, 1, None] + span, 0, height - 1)
-    cols = np.clip(centres[:, 0, None] + span, 0, width - 1)
-    patch = image.take(rows[:, :, None] * width + cols[:, None, :]) - mean
-    cross = _spectrum(patch, length) * _spectrum(tmpl[:, ::-1, ::-1], length)  # sum_y T'(y) I(z + y)
-    sum_it = fft.irfft2(cross, s=(length, length), workers=fft_workers())[:, t - 1 : t - 1 + g, t - 1 : t - 1 + g]
-    sum_sq = _window_sums(patch * patch, t, g)
-    if cost == "ssd":
-        return np.maximum(sum_sq - 2.0 * sum_it + energy, 0.0)  # eq. (6)
-    sum_i = _window_sums(patch, t, g)
-    spread = np.maximum(sum_sq - sum_i * sum_i / (t * t), 0.0)  # sum I'^2
-    if cost == "zero_mean":
-        return np.maximum(spread - 2.0 * sum_it + energy, 0.0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rho = np.where(spread > 0, sum_it / np.sqrt(energy * spread), 0.0)
-    return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
-
-
-def _window_sums(values: np.ndarray, t: int, g: int) -> np.ndarray:
-    """(P, g, g) sums of (P, g + t - 1, g + t - 1) ``values`` over each t x t window, by cumulative sums."""
-    total = np.zeros((values.shape[0], values.shape[1] + 1, values.shape[2] + 1))
-    np.cumsum(np.cumsum(values, axis=1), axis=2, out=total[:, 1:, 1:])
-    return total[:, t:, t:] - total[:, :g, t:] - total[:, t:, :g] + total[:, :g, :g]
-
-
-def matching_cost(templates: np.ndarray, patches: np.ndarray, cost: str) -> np.ndarray:
-    """(M,) the ``cost`` of :func:`_ssd_surfaces` between aligned (M, t, t) ``templates`` and ``patches``."""
-    a = np.asarray(templates, np.float64)
-    b = np.asarray(patches, np.float64)
-    if cost == "ssd":
-        return ((a - b) ** 2).sum(axis=(1, 2))
-    a = a - a.mean(axis=(1, 2), keepdims=True)
-    b = b - b.mean(axis=(1, 2), keepdims=True)
-    if cost == "zero_mean":
-        return ((a - b) ** 2).sum(axis=(1, 2))
-    energy, spread = (a * a).sum(axis=(1, 2)), (b * b).sum(axis=(1, 2))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rho = np.where(spread > 0, (a * b).sum(axis=(1, 2)) / np.sqrt(energy * spread), 0.0)
-    return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
-
-
-def _shift(window: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """(P, a - 2, b - 2) bilinear samples of (P, a, b) windows at their inner pixels moved by (P, 2) ``offset``.
-
-    |offset| <= 1 px on each axis; the windows' borders supply the neighbours.
-    """
-    fx, fy = offset[:, 0, None, None], offset[:, 1, None, None]
-    left, mid, right = window[:, :, :-2], window[:, :, 1:-1], window[:, :, 2:]
-    rows = mid + np.where(fx >= 0, fx * (right - mid), -fx * (left - mid))
-    up, mid, down = rows[:, :-2], rows[:, 1:-1], rows[:, 2:]
-    return mid + np.where(fy >= 0, fy * (down - mid), -fy * (up - mid))
-
-
-def _refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str = "ssd") -> np.ndarray:
-    """(P, 2) sub-pixel z_k: the continuous minimum of eq. (6) within +-0.5 px of the integer minimum ``start``.
-
-    Gauss-Newton on r(z) = sum_y [T(y) - I_k(z + y)]^2 with I_k bilinear (border
-    replicated) and its gradient by central differences, ``_REFINE_STEPS`` steps,
-    each clamped so that z stays within the integer minimum's cell. The normal
-    matrix is damped by 1e-3 of its trace so that the step along an edge (no
-    information) stays small. Other ``cost``: that of :func:`matching_cost`, the
-    frame patch given the template's mean (and contrast) at each step (held
-    fixed within a step).
-    """
-    t = templates.shape[1]
-    window = extract_templates(gray, start, t + 4).astype(np.float64)  # I_k at start + [-t//2 - 2, t//2 + 2]^2
-    reference = templates.astype(np.float64)
-    if cost != "ssd":
-        reference = reference - reference.mean(axis=(1, 2), keepdims=True)
-        energy = (reference * reference).sum(axis=(1, 2))
-    offset = np.zeros(start.shape)
-    for _ in range(_REFINE_STEPS):
-        moved = _shift(window, offset)  # I_k at z + [-t//2 - 1, t//2 + 1]^2
-        if cost != "ssd":
-            inner = moved[:, 1:-1, 1:-1]
-            centred = inner - inner.mean(axis=(1, 2), keepdims=True)
-            spread = (centred * centred).sum(axis=(1, 2))
-            gain = np.sqrt(energy / np.where(spread > 0, spread, np.inf))[:, None, None] if cost == "normalised" else 1.0
-            moved = (moved - inner.mean(axis=(1, 2), keepdims=True)) * gain
-        gx = (moved[:, 1:-1, 2:] - moved[:, 1:-1, :-2]) / 2.0
-        gy = (moved[:, 2:, 1:-1] - moved[:, :-2, 1:-1]) / 2.0
-        error = reference - moved[:, 1:-1, 1:-1]
-        a, b, c = (gx * gx).sum(axis=(1, 2)), (gx * gy).sum(axis=(1, 2)), (gy * gy).sum(axis=(1, 2))
-        damping = 1e-3 * (a + c) + 1e-12
-        a, c = a + damping, c + damping
-        ex, ey = (gx * error).sum(axis=(1, 2)), (gy * error).sum(axis=(1, 2))
-        det = a * c - b * b
-        step = np.stack([c * ex - b * ey, a * ey - b * ex], axis=1) / det[:, None]
-        offset = np.clip(offset + step, -0.5, 0.5)
-    return start + offset
 
 
 def measure(
@@ -523,7 +168,7 @@ def measure(
     gate_cov = np.asarray(gate_cov, np.float64).reshape(-1, 2, 2)
     count = len(predicted)
     known = np.isfinite(predicted).all(axis=1)
-    z, R = np.full((count, 2), np.nan), _infinite(count)
+    z, R = np.full((count, 2), np.nan), infinite_covariance(count)
     residual, informative = np.full(count, np.nan), np.zeros(count, bool)
     if not known.any():
         return Measurement(z, R, residual, informative)
@@ -566,7 +211,7 @@ def _measure_group(gray: np.ndarray, templates: np.ndarray, predicted: np.ndarra
     height, width = gray.shape
     x = centres[:, 0, None, None] + grid[None, None, :]  # (P, 1, G) candidate columns
     y = centres[:, 1, None, None] + grid[None, :, None]  # (P, G, 1) candidate rows
-    r_full = _ssd_surfaces(gray, templates, centres, reach, settings.cost)
+    r_full = ssd_surfaces(gray, templates, centres, reach, settings.cost)
     r_full = np.where((x >= 0) & (x < width) & (y >= 0) & (y < height), r_full, np.inf)  # outside the frame
 
     inner = slice(half, half + 2 * largest + 1)  # the candidate offsets, |dx|, |dy| <= largest
@@ -590,12 +235,12 @@ def _measure_group(gray: np.ndarray, templates: np.ndarray, predicted: np.ndarra
     residual = r_full[np.arange(count), row, col]
 
     integer = np.stack([centres[:, 0] + col - reach, centres[:, 1] + row - reach], axis=1).astype(np.float64)
-    z = _refine(gray, templates, integer, settings.cost)
+    z = refine(gray, templates, integer, settings.cost)
 
     offsets = np.arange(-half, half + 1)
     rows, cols = (row[:, None] + offsets)[:, :, None], (col[:, None] + offsets)[:, None, :]
     support = r_full[np.arange(count)[:, None, None], rows, cols]  # W(z_k), (P, n, n)
-    R, informative, c_eq8 = _response(support, sigma, t * t, settings, z - integer)
+    R, informative, c_eq8 = response(support, sigma, t * t, settings, z - integer)
 
     peak = residual[:, None, None]
     neighbours = support[:, half - 1 : half + 2, half - 1 : half + 2]
@@ -606,14 +251,14 @@ def _measure_group(gray: np.ndarray, templates: np.ndarray, predicted: np.ndarra
         np.minimum(lowest_around, shifted, out=lowest_around)
     level = gated
     if settings.equalise_alpha is not None:  # eq. (10) over the gate, as on the support
-        level = np.where(gated < _noise_threshold(sigma, t * t, settings.equalise_alpha), peak, gated)
+        level = np.where(gated < noise_threshold(sigma, t * t, settings.equalise_alpha), peak, gated)
     with np.errstate(invalid="ignore"):
         excess = c_eq8[:, None, None] * (level - peak)
     competitive = (level == peak) | (excess <= np.log(1.0 / settings.ambiguity_ratio))  # exp(-c r) >= ratio * peak's
     distance = np.maximum(np.abs(dy + reach - row[:, None, None]), np.abs(dx + reach - col[:, None, None]))
     second = gate & (distance > half) & (candidates <= lowest_around) & competitive  # deep local minima beyond W
     informative = found & informative & at_minimum & ~second.any(axis=(1, 2))
-    R = np.where(informative[:, None, None], R, _infinite(count))
+    R = np.where(informative[:, None, None], R, infinite_covariance(count))
     return Measurement(
         z=np.where(found[:, None], z, np.nan), R=R, residual=np.where(found, residual, np.nan), informative=informative
     )

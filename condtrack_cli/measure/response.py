@@ -1,0 +1,177 @@
+"""R_k from the residuals on the support W(z_k): paper eqs. (8)-(10), the uniform test and the one-peak test.
+
+The noise model, the choice of c in eq. (8) and the floor of R_k are explained in
+:mod:`condtrack_cli.measure.ssd`.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from scipy import ndimage, special
+
+from condtrack_cli.measure.noise import noise_threshold
+
+if TYPE_CHECKING:
+    from condtrack_cli.measure.ssd import SSDSettings
+
+#: Cells within 2 px (Chebyshev) inside each (a, b) slice of a (P, a, b) stack, none across slices.
+_WITHIN_2PX = np.zeros((3, 5, 5), bool)
+_WITHIN_2PX[1] = True
+
+
+def unit_sum_c(r: np.ndarray, available: np.ndarray, r_min: np.ndarray) -> np.ndarray:
+    """(P,) the c of eq. (8) with sum over W of exp(-c r) = 1; +inf where min r = 0.
+
+    r: (P, k) residuals, available: (P, k) bool, r_min: (P,) their minimum.
+    g(c) = log sum exp(-c (r - r_min)) - c r_min is convex and decreasing from
+    g(0) = log k > 0, so Newton's method from c = 0 increases monotonically to the root.
+    """
+    delta = np.where(available, r - r_min[:, None], 0.0)
+    positive = r_min > 0
+    c = np.zeros(len(r))
+    for _ in range(200):
+        w = np.where(available, np.exp(-c[:, None] * delta), 0.0)
+        total = w.sum(axis=1)
+        g = np.log(total) - c * r_min
+        slope = -(w * delta).sum(axis=1) / total - r_min
+        active = positive & (np.abs(g) > 1e-12)
+        if not active.any():
+            break
+        c = np.where(active, c - g / np.where(active, slope, 1.0), c)
+    return np.where(positive, c, np.inf)
+
+
+def _parabola_offset(left: np.ndarray, centre: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """Vertex of the parabola through (-1, left), (0, centre), (1, right), clamped to [-0.5, 0.5] px.
+
+    0 where the three do not make a finite upward parabola (a neighbour outside the frame, a flat run).
+    """
+    with np.errstate(invalid="ignore"):
+        curvature = left - 2.0 * centre + right
+        usable = np.isfinite(curvature) & (curvature > 0)
+        offset = np.where(usable, (left - right) / (2.0 * np.where(usable, curvature, 1.0)), 0.0)
+    return np.clip(offset, -0.5, 0.5)
+
+
+def _parabola_vertex(residuals: np.ndarray) -> np.ndarray:
+    """(P, 2) offset (dx, dy) of the separable parabola's vertex from the centre of (P, n, n) residuals."""
+    mid = residuals.shape[1] // 2
+    centre = residuals[:, mid, mid]
+    dx = _parabola_offset(residuals[:, mid, mid - 1], centre, residuals[:, mid, mid + 1])
+    dy = _parabola_offset(residuals[:, mid - 1, mid], centre, residuals[:, mid + 1, mid])
+    return np.stack([dx, dy], axis=1)
+
+
+def _separate(cells: np.ndarray, row: np.ndarray, col: np.ndarray) -> np.ndarray:
+    """(P,) True where some of ``cells`` (P, a, b) are 3 px or more (Chebyshev) from the group of cell (row, col).
+
+    The group grows from (row, col) through cells at most 2 px apart, so that a steep
+    oblique valley, which the grid samples with one-cell gaps, stays one group.
+    """
+    group = np.zeros_like(cells)
+    index = np.arange(len(cells))
+    group[index, row, col] = cells[index, row, col]
+    while True:
+        grown = cells & ndimage.binary_dilation(group, structure=_WITHIN_2PX)
+        if np.array_equal(grown, group):
+            return (cells & ~group).any(axis=(1, 2))
+        group = grown
+
+
+def response(
+    residuals: np.ndarray, sigma: float, m: int, settings: SSDSettings, offset: np.ndarray | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """R_k, its informativeness and c on (P, n, n) supports; see :func:`response_covariance`.
+
+    Returns R (P, 2, 2) before the infinite substitution, informative (P,) bool and c (P,) (1/grey levels^2).
+    """
+    if not sigma > 0:
+        raise ValueError(f"the noise std sigma must be positive, got {sigma}")
+    r = np.asarray(residuals, np.float64)
+    count, n = r.shape[0], r.shape[1]
+    half = n // 2
+    available = np.isfinite(r)
+    empty = ~available.any(axis=(1, 2))  # no residual at all: computed on zeros, reported uninformative
+    available |= empty[:, None, None]
+    n_available = available.sum(axis=(1, 2))
+    r = np.where(available, r, np.inf)
+    r[empty] = 0.0
+    r_raw, r_min = r, r.min(axis=(1, 2))
+    if settings.equalise_alpha is not None:  # eq. (10): residuals within the noise are all set to the lowest one
+        within_noise = available & (r < noise_threshold(sigma, m, settings.equalise_alpha))
+        r = np.where(within_noise, r_min[:, None, None], r)
+    flat_r = r.reshape(count, -1)
+    flat_available = available.reshape(count, -1)
+    if settings.c_rule == "unit_sum":
+        c = unit_sum_c(flat_r, flat_available, r_min)
+    else:
+        c = np.full(count, 1.0 / (4.0 * sigma**2))  # 1 / (2 sigma_d^2): Gaussian likelihood of the patch
+    excess = np.where(available, r - r_min[:, None, None], np.inf)
+    with np.errstate(invalid="ignore"):
+        energy = np.where(excess == 0, 0.0, c[:, None, None] * excess)  # c (r - r_min), with inf * 0 = 0
+    log_d = -energy - special.logsumexp(-energy, axis=(1, 2), keepdims=True)
+    d = np.exp(log_d)  # eq. (8): D_k = exp(-c r_k) / sum_W exp(-c r_k)
+
+    delta = _parabola_vertex(r_raw) if offset is None else np.asarray(offset, np.float64)  # z_k - centre (px)
+    grid = np.arange(n) - half
+    du = grid[None, None, :] - delta[:, 0, None, None]  # (P, n, n) x - x_k
+    dv = grid[None, :, None] - delta[:, 1, None, None]  # (P, n, n) y - y_k
+    sxx = (d * du * du).sum(axis=(1, 2))  # eq. (9): sigma_uv = sum_W D_k (u - u_k)(v - v_k)
+    sxy = (d * du * dv).sum(axis=(1, 2))
+    syy = (d * dv * dv).sum(axis=(1, 2))
+    R = np.stack([np.stack([sxx, sxy], -1), np.stack([sxy, syy], -1)], -2) + settings.r_floor * np.eye(2)
+
+    # Chi-square goodness of fit in its likelihood-ratio (G) form, one pseudo-observation per available
+    # cell: G = 2 N KL(D_k || law), asymptotically chi-square with N - 1 degrees of freedom for the uniform
+    # law. With N = 49 at 5%, the uniform law is rejected when KL > 0.67 nat: D_k fills less than half of W.
+    entropy = -special.xlogy(d, d).sum(axis=(1, 2))
+    kl_uniform = np.log(n_available) - entropy
+    critical = 2.0 * special.gammaincinv(np.maximum(n_available - 1, 1) / 2, 1.0 - settings.uniform_alpha)  # chi2 quantile
+    uniform_rejected = 2.0 * n_available * kl_uniform > critical
+    det = R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2
+    rxx, rxy, ryy = R[:, 0, 0, None, None], R[:, 0, 1, None, None], R[:, 1, 1, None, None]
+    quadratic = ryy * du * du - 2 * rxy * du * dv + rxx * dv * dv
+    log_g = np.where(available, -0.5 * quadratic / det[:, None, None], -np.inf)  # N(z_k, R_k) on W
+    log_g = np.where(available, log_g - special.logsumexp(log_g, axis=(1, 2), keepdims=True), 0.0)
+    kl_gauss = (special.xlogy(d, d) - d * log_g).sum(axis=(1, 2))
+    peak = available & (energy <= np.log(1.0 / settings.ambiguity_ratio))  # D_k >= ambiguity_ratio * max D_k
+    centre = np.full(count, half)
+    one_mode = ~_separate(peak, centre, centre)
+    informative = ~empty & (n_available >= 2) & uniform_rejected & (kl_gauss < kl_uniform) & one_mode
+    return R, informative, c
+
+
+def infinite_covariance(count: int) -> np.ndarray:
+    """(count, 2, 2) the covariance of no information: diagonal +inf, off-diagonal 0."""
+    R = np.zeros((count, 2, 2))
+    R[:, [0, 1], [0, 1]] = np.inf
+    return R
+
+
+def response_covariance(
+    residuals: np.ndarray, sigma: float, m: int, settings: SSDSettings, *, offset: np.ndarray | None = None
+) -> np.ndarray:
+    """R_k (P, 2, 2) in px^2 from residual surfaces, paper eqs. (8)-(10) and the uniform test.
+
+    residuals: (P, n, n) r_k on the support W(z_k), centred on the integer minimum
+    (grey levels^2; +inf marks a cell without a residual, e.g. outside the frame).
+    sigma: acquisition noise std (grey levels). m: template pixel count (t^2).
+    offset: (P, 2) sub-pixel z_k minus the centre cell (px, within +-0.5); default: the
+    vertex of the separable parabola through the centre 3 x 3 of ``residuals``.
+
+    1. Eq. (10): cells whose residual is consistent with noise at ``equalise_alpha``
+       are set to the lowest residual (none is favoured over another).
+    2. Eq. (8): D_k = exp(-c r_k), normalised over W (c per ``c_rule``, module docstring).
+    3. Eq. (9): R_k = sum_W D_k (z - z_k)(z - z_k)^T about the sub-pixel minimum z_k,
+       plus ``r_floor`` * I.
+    4. R_k is infinite (diagonal +inf) unless: the chi-square test rejects the uniform
+       law for D_k at ``uniform_alpha`` (a flat surface, an occluded patch, does not);
+       the Gaussian N(z_k, R_k) fits D_k better than the uniform law; and the cells with
+       D_k >= ``ambiguity_ratio`` * max D_k form one group (two peaks 3 px or more apart
+       do not; cells 2 px apart are grouped so that a steep oblique valley, which the
+       grid samples with one-cell gaps, stays one group).
+    """
+    R, informative, _ = response(residuals, sigma, m, settings, offset)
+    return np.where(informative[:, None, None], R, infinite_covariance(len(R)))

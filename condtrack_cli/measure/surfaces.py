@@ -1,0 +1,155 @@
+"""Matching costs between reference patches and a frame: patches, cost surfaces of eq. (6) by FFT, sub-pixel refinement."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import fft
+
+from condtrack_cli.threads import fft_workers
+
+#: Gauss-Newton steps of the sub-pixel refinement (median change after 3 steps: 0.01 px on photographs).
+_REFINE_STEPS = 3
+
+
+def extract_templates(gray: np.ndarray, xy: np.ndarray, size: int) -> np.ndarray:
+    """(M, size, size) float32 patches of ``gray`` centred on the sub-pixel positions ``xy``.
+
+    gray: (H, W) float32 grey levels; xy: (M, 2) finite positions (px); size: odd side.
+    Patch pixel (i, j) is ``gray`` at (x + j - size//2, y + i - size//2), bilinear,
+    with the border replicated (coordinates clamped to the frame).
+    """
+    height, width = gray.shape
+    xy = np.asarray(xy, np.float64).reshape(-1, 2)
+    grid = np.arange(size) - size // 2
+    x = np.clip(xy[:, 0, None] + grid, 0, width - 1)  # (M, size), clamped: border replicate
+    y = np.clip(xy[:, 1, None] + grid, 0, height - 1)
+    x0, y0 = np.floor(x).astype(np.intp), np.floor(y).astype(np.intp)
+    x1, y1 = np.minimum(x0 + 1, width - 1), np.minimum(y0 + 1, height - 1)
+    wx, wy = (x - x0)[:, None, :], (y - y0)[:, :, None]
+    flat = np.ascontiguousarray(gray).ravel()
+    rows0, rows1 = (y0 * width)[:, :, None], (y1 * width)[:, :, None]
+    cols0, cols1 = x0[:, None, :], x1[:, None, :]
+    top = flat.take(rows0 + cols0) * (1 - wx) + flat.take(rows0 + cols1) * wx
+    bottom = flat.take(rows1 + cols0) * (1 - wx) + flat.take(rows1 + cols1) * wx
+    return (top * (1 - wy) + bottom * wy).astype(np.float32)
+
+
+def _spectrum(values: np.ndarray, length: int) -> np.ndarray:
+    """(P, length, length // 2 + 1) 2-D real FFT of (P, a, b) arrays zero-padded to length x length."""
+    return fft.rfft2(values, s=(length, length), workers=fft_workers())
+
+
+def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, reach: int,
+                  cost: str = "ssd") -> np.ndarray:
+    """(P, G, G) float64 r_k (eq. 6) at integer candidates centres + (dx, dy), |dx|, |dy| <= reach, G = 2 reach + 1.
+
+    Element [p, i, j] is the matching cost between templates[p] and the frame patch
+    centred on (centres[p, 0] + j - reach, centres[p, 1] + i - reach), frame border
+    replicated. From each point's frame patch less the template's mean (I, which
+    keeps the cancellation small) and T' = T - mean T: the window sums of I and I^2
+    (cumulative sums) and of I T' (FFT correlation). ``cost`` 'ssd': the SSD,
+    sum [T' - I]^2 = sum I^2 - 2 sum I T' + sum T'^2. 'zero_mean': the SSD after
+    giving the frame patch the template's mean, sum [T' - I']^2 (T', I' mean-free).
+    'normalised': after giving it the template's mean and contrast, sum [T' - a I']^2
+    = 2 sum T'^2 (1 - rho) (a = |T'| / |I'|, rho their correlation; a flat frame
+    patch has rho = 0). See :func:`matching_cost`.
+    """
+    height, width = gray.shape
+    t = templates.shape[1]
+    span = np.arange(-(reach + t // 2), reach + t // 2 + 1)
+    g = 2 * reach + 1
+    length = fft.next_fast_len(len(span), real=True)  # >= the patch side: the kept outputs do not wrap
+    image = np.ascontiguousarray(gray).ravel()
+    tmpl = templates.astype(np.float64)
+    mean = tmpl.mean(axis=(1, 2), keepdims=True)
+    tmpl -= mean
+    energy = (tmpl * tmpl).sum(axis=(1, 2))[:, None, None]  # sum T'^2
+    rows = np.clip(centres[:, 1, None] + span, 0, height - 1)
+    cols = np.clip(centres[:, 0, None] + span, 0, width - 1)
+    patch = image.take(rows[:, :, None] * width + cols[:, None, :]) - mean
+    cross = _spectrum(patch, length) * _spectrum(tmpl[:, ::-1, ::-1], length)  # sum_y T'(y) I(z + y)
+    sum_it = fft.irfft2(cross, s=(length, length), workers=fft_workers())[:, t - 1 : t - 1 + g, t - 1 : t - 1 + g]
+    sum_sq = _window_sums(patch * patch, t, g)
+    if cost == "ssd":
+        return np.maximum(sum_sq - 2.0 * sum_it + energy, 0.0)  # eq. (6)
+    sum_i = _window_sums(patch, t, g)
+    spread = np.maximum(sum_sq - sum_i * sum_i / (t * t), 0.0)  # sum I'^2
+    if cost == "zero_mean":
+        return np.maximum(spread - 2.0 * sum_it + energy, 0.0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = np.where(spread > 0, sum_it / np.sqrt(energy * spread), 0.0)
+    return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
+
+
+def _window_sums(values: np.ndarray, t: int, g: int) -> np.ndarray:
+    """(P, g, g) sums of (P, g + t - 1, g + t - 1) ``values`` over each t x t window, by cumulative sums."""
+    total = np.zeros((values.shape[0], values.shape[1] + 1, values.shape[2] + 1))
+    np.cumsum(np.cumsum(values, axis=1), axis=2, out=total[:, 1:, 1:])
+    return total[:, t:, t:] - total[:, :g, t:] - total[:, t:, :g] + total[:, :g, :g]
+
+
+def matching_cost(templates: np.ndarray, patches: np.ndarray, cost: str) -> np.ndarray:
+    """(M,) the ``cost`` of :func:`ssd_surfaces` between aligned (M, t, t) ``templates`` and ``patches``."""
+    a = np.asarray(templates, np.float64)
+    b = np.asarray(patches, np.float64)
+    if cost == "ssd":
+        return ((a - b) ** 2).sum(axis=(1, 2))
+    a = a - a.mean(axis=(1, 2), keepdims=True)
+    b = b - b.mean(axis=(1, 2), keepdims=True)
+    if cost == "zero_mean":
+        return ((a - b) ** 2).sum(axis=(1, 2))
+    energy, spread = (a * a).sum(axis=(1, 2)), (b * b).sum(axis=(1, 2))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = np.where(spread > 0, (a * b).sum(axis=(1, 2)) / np.sqrt(energy * spread), 0.0)
+    return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
+
+
+def _shift(window: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """(P, a - 2, b - 2) bilinear samples of (P, a, b) windows at their inner pixels moved by (P, 2) ``offset``.
+
+    |offset| <= 1 px on each axis; the windows' borders supply the neighbours.
+    """
+    fx, fy = offset[:, 0, None, None], offset[:, 1, None, None]
+    left, mid, right = window[:, :, :-2], window[:, :, 1:-1], window[:, :, 2:]
+    rows = mid + np.where(fx >= 0, fx * (right - mid), -fx * (left - mid))
+    up, mid, down = rows[:, :-2], rows[:, 1:-1], rows[:, 2:]
+    return mid + np.where(fy >= 0, fy * (down - mid), -fy * (up - mid))
+
+
+def refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str = "ssd") -> np.ndarray:
+    """(P, 2) sub-pixel z_k: the continuous minimum of eq. (6) within +-0.5 px of the integer minimum ``start``.
+
+    Gauss-Newton on r(z) = sum_y [T(y) - I_k(z + y)]^2 with I_k bilinear (border
+    replicated) and its gradient by central differences, ``_REFINE_STEPS`` steps,
+    each clamped so that z stays within the integer minimum's cell. The normal
+    matrix is damped by 1e-3 of its trace so that the step along an edge (no
+    information) stays small. Other ``cost``: that of :func:`matching_cost`, the
+    frame patch given the template's mean (and contrast) at each step (held
+    fixed within a step).
+    """
+    t = templates.shape[1]
+    window = extract_templates(gray, start, t + 4).astype(np.float64)  # I_k at start + [-t//2 - 2, t//2 + 2]^2
+    reference = templates.astype(np.float64)
+    if cost != "ssd":
+        reference = reference - reference.mean(axis=(1, 2), keepdims=True)
+        energy = (reference * reference).sum(axis=(1, 2))
+    offset = np.zeros(start.shape)
+    for _ in range(_REFINE_STEPS):
+        moved = _shift(window, offset)  # I_k at z + [-t//2 - 1, t//2 + 1]^2
+        if cost != "ssd":
+            inner = moved[:, 1:-1, 1:-1]
+            centred = inner - inner.mean(axis=(1, 2), keepdims=True)
+            spread = (centred * centred).sum(axis=(1, 2))
+            gain = np.sqrt(energy / np.where(spread > 0, spread, np.inf))[:, None, None] if cost == "normalised" else 1.0
+            moved = (moved - inner.mean(axis=(1, 2), keepdims=True)) * gain
+        gx = (moved[:, 1:-1, 2:] - moved[:, 1:-1, :-2]) / 2.0
+        gy = (moved[:, 2:, 1:-1] - moved[:, :-2, 1:-1]) / 2.0
+        error = reference - moved[:, 1:-1, 1:-1]
+        a, b, c = (gx * gx).sum(axis=(1, 2)), (gx * gy).sum(axis=(1, 2)), (gy * gy).sum(axis=(1, 2))
+        damping = 1e-3 * (a + c) + 1e-12
+        a, c = a + damping, c + damping
+        ex, ey = (gx * error).sum(axis=(1, 2)), (gy * error).sum(axis=(1, 2))
+        det = a * c - b * b
+        step = np.stack([c * ex - b * ey, a * ey - b * ex], axis=1) / det[:, None]
+        offset = np.clip(offset + step, -0.5, 0.5)
+    return start + offset
