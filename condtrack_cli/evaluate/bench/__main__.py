@@ -1,0 +1,128 @@
+"""The benchmark: every method on every sequence with ground truth, plus a speed case.
+
+``make bench`` runs ``python -m condtrack_cli.evaluate.bench --out bench/results.md``.
+Each method runs as its own ``condtrack track`` process (whole-process wall time
+and peak resident memory, read with ``os.wait4``), and is scored with the same
+code as ``condtrack eval``. Speed (issue 13) is a ratio to a plain OpenCV
+Lucas-Kanade script (``plain_lk.py``) run as its own process in the same run,
+on a 640x480 synthetic scene and a shared KITTI clip, followed by a profile of
+each filter by stage (``speed_table``, ``profile_table``).
+
+Sequences: ``sample_sequences/*`` (queries.csv and tracks.csv shipped) and
+``../shared/data/*`` with a tracks.csv (skipped with a message when absent);
+for those, the queries are each track's first observation, over tracks with at
+least 3 observations, at most ``--max-points`` of them (every k-th track, k
+the smallest stride that fits) to bound the run time.
+
+``--batch`` prints only the batch throughput table (``batch_table``);
+``--speed`` only the speed comparison and the profile.
+
+``--support SEQUENCE`` prints instead the dominant model's one-step prediction
+error by neighbourhood support (the measurement behind ``auto``'s thresholds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import os
+import platform
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from condtrack_cli.evaluate.bench.accuracy import accuracy_table, calibration_table, support_table
+from condtrack_cli.evaluate.bench.common import REPO
+from condtrack_cli.evaluate.bench.speed import batch_table, profile_table, speed_table
+from condtrack_cli.evaluate.bench.versus_lk import versus_lk_section
+
+
+def machine() -> str:
+    cpu = platform.processor() or "unknown CPU"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{os.cpu_count()} cores, {cpu}"
+
+
+def commit() -> str:
+    try:
+        return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True, text=True).stdout.strip()
+    except OSError:
+        return "unknown"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, default=REPO / "bench" / "results.md")
+    parser.add_argument("--max-points", type=int, default=1000, help="most query points per shared sequence")
+    parser.add_argument("--work", type=Path, default=REPO / "bench" / "out",
+                        help="folder for the queries and track files (emptied first; kept for `condtrack eval`)")
+    parser.add_argument("--support", type=Path, metavar="SEQUENCE",
+                        help="only print the dominant model's one-step error by support on SEQUENCE (with tracks.csv)")
+    parser.add_argument("--batch", action="store_true", help="only print the batch throughput table")
+    parser.add_argument("--speed", action="store_true",
+                        help="only print the speed comparison with OpenCV LK and the profile table (issue 13)")
+    parser.add_argument("--shared-data", type=Path, default=REPO.parent / "shared" / "data",
+                        help="folder of the real sets for the section against OpenCV LK")
+    parser.add_argument("--versus-lk", action="store_true",
+                        help="only print the section against OpenCV LK (issue 11); results.md is not written")
+    args = parser.parse_args()
+    if args.versus_lk:
+        args.work.mkdir(parents=True, exist_ok=True)
+        print("\n".join(versus_lk_section(args.work, args.shared_data)))
+        return
+    if args.support:
+        print("\n".join(support_table(args.support)))
+        return
+    if args.speed:
+        shutil.rmtree(args.work / "speed", ignore_errors=True)
+        args.work.mkdir(parents=True, exist_ok=True)
+        print("\n".join(speed_table(args.work, args.shared_data) + ["## Profile", ""]
+                        + profile_table(args.work, args.shared_data)))
+        return
+    if args.batch:
+        shutil.rmtree(args.work / "batch", ignore_errors=True)
+        print("\n".join(batch_table(args.work)))
+        return
+    shutil.rmtree(args.work, ignore_errors=True)
+    args.work.mkdir(parents=True)
+    accuracy = accuracy_table(args.max_points, args.work)
+    speed = speed_table(args.work, args.shared_data)
+    profile = profile_table(args.work, args.shared_data)
+    batch = batch_table(args.work)
+    versus_lk = versus_lk_section(args.work, args.shared_data)
+    header = [
+        "# condtrack benchmark",
+        "",
+        f"- date: {datetime.date.today().isoformat()}",
+        f"- machine: {machine()}",
+        f"- commit: {commit()}",
+        "- command: `make bench`",
+        "",
+        "## Accuracy (TAP-Vid 'first' query mode; shared sets: queries = first observation of tracks "
+        f"with >= 3 observations, at most {args.max_points} per sequence)",
+        "",
+        "OA and AJ are n/a where the ground truth has no occluded rows. cov95 is n/a for methods without covariance.",
+        "Track files stay in bench/out/ (`<sequence>.<method>.h5`, queries beside them): "
+        "`condtrack eval bench/out/<file>.h5 <ground truth>` gives the row's numbers.",
+        "",
+    ]
+    calibration = [
+        "", "## Covariance calibration (same track files; 'first' query mode, GT-visible rows after the query)", "",
+        "covP: share of the ground truth inside the predicted ellipse of level P % (ideal P/100); NEES: mean "
+        "d^T C^-1 d over the rows with a finite covariance (ideal 2); finite: share of those rows.", "",
+    ] + calibration_table(args.max_points, args.work)
+    text = "\n".join(header + accuracy + calibration + ["", "## Speed (issue 13)", ""] + speed + ["## Profile", ""] + profile + ["", "## Many clips", ""] + batch + [""] + versus_lk) + "\n"
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(text)
+    print(f"bench: wrote {args.out}", file=sys.stderr)
+
+
+if __name__ == "__main__":
+    main()

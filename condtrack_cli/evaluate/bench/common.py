@@ -1,0 +1,79 @@
+"""Helpers shared by the benchmark sections: queries from ground truth, one timed ``condtrack track`` process, the sequences."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from condtrack_cli.evaluate.groundtruth import GroundTruth, load_gt_csv
+
+
+
+REPO = Path(__file__).resolve().parents[3]
+
+
+def gt_queries(truth: GroundTruth, min_observations: int = 3, max_points: int | None = None) -> np.ndarray:
+    """(Q, 4) rows point_id, frame, x, y: each kept track's first observation.
+
+    Tracks with fewer than ``min_observations`` GT rows are dropped; when more
+    than ``max_points`` remain, every k-th is kept (k the smallest that fits).
+    """
+    counts = truth.known.sum(axis=1)
+    keep = np.flatnonzero(counts >= min_observations)
+    if max_points is not None and len(keep) > max_points:
+        keep = keep[:: int(np.ceil(len(keep) / max_points))]
+    first = truth.known[keep].argmax(axis=1)
+    xy = truth.gt_xy[keep, first]
+    return np.column_stack([truth.point_id[keep], first, xy])
+
+
+def write_queries(rows: np.ndarray, path: Path) -> None:
+    """Write (Q, 4) query rows as the ``point_id,frame,x,y`` CSV that ``track -p`` reads."""
+    lines = ["point_id,frame,x,y"] + [f"{int(p)},{int(f)},{x:.4f},{y:.4f}" for p, f, x, y in rows]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def run_process(command: list[str]) -> tuple[float, float, int, str]:
+    """Run ``command``: (wall seconds, peak RSS MiB, exit code, stderr's last line); stdout is discarded."""
+    started = time.perf_counter()
+    process = subprocess.Popen(command, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL)
+    stderr = process.stderr.read().decode()
+    _, status, usage = os.wait4(process.pid, 0)
+    process.returncode = os.waitstatus_to_exitcode(status)
+    seconds = time.perf_counter() - started
+    return seconds, usage.ru_maxrss / 1024.0, process.returncode, (stderr.strip().splitlines() or [""])[-1]
+
+
+def run_track(args: list[str]) -> tuple[float, float, int, str]:
+    """Run ``condtrack track ARGS -q`` as its own process: see :func:`run_process`."""
+    return run_process([sys.executable, "-m", "condtrack_cli", "track", *args, "-q"])
+
+
+def sequences(max_points: int, work: Path) -> list[tuple[str, Path, Path, Path]]:
+    """(name, frames folder, queries CSV, GT CSV) of every sequence with ground truth."""
+    found = []
+    for folder in sorted((REPO / "sample_sequences").glob("*/")):
+        if (folder / "tracks.csv").is_file() and (folder / "queries.csv").is_file():
+            found.append((f"sample/{folder.name}", folder, folder / "queries.csv", folder / "tracks.csv"))
+    shared = REPO.parent / "shared" / "data"
+    if not shared.is_dir():
+        print(f"bench: {shared} is absent; shared sequences skipped", file=sys.stderr)
+        return found
+    for folder in sorted(shared.glob("*/")):
+        gt_path = folder / "tracks.csv"
+        if not gt_path.is_file():
+            continue
+        rows = gt_queries(load_gt_csv(gt_path), max_points=max_points)
+        queries = work / f"{folder.name}.queries.csv"
+        write_queries(rows, queries)
+        found.append((f"shared/{folder.name}", folder, queries, gt_path))
+    return found
+
+
+def fmt(value) -> str:
+    return "n/a" if value is None else f"{value:.3f}"

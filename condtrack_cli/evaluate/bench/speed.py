@@ -1,0 +1,205 @@
+"""Speed against a plain OpenCV LK script (issue 13), the profile by stage, and batch throughput (issue 14)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from condtrack_cli.evaluate.bench.common import run_process, run_track, write_queries
+from condtrack_cli.evaluate.bench.versus_lk import versus_lk_queries
+from condtrack_cli.evaluate.groundtruth import load_gt_csv
+
+
+#: Methods of the speed comparison with OpenCV LK (issue 13) and of the profile table.
+SPEED_METHODS = ("clf", "auto", "cnlf")
+
+#: The shared clip of the speed comparison on real frames (KITTI, 1242x375).
+SPEED_CLIP = "kt3dmoseg_seq005_clip01"
+
+
+def speed_scenes(work: Path, shared: Path, n_points: int = 500, n_frames: int = 60,
+                 size: tuple[int, int] = (640, 480)) -> list[tuple[str, Path, Path]]:
+    """(title, frames folder, queries CSV) of the speed cases of issue 13.
+
+    The synthetic camera_motion scene at ``size`` with ``n_points`` uniformly drawn
+    points over ``n_frames`` frames (the points within 24 px of the border and those
+    the scene hides are still asked for), and the first 20 frames of the shared
+    ``SPEED_CLIP`` with the real-video queries of issue 11 (:func:`versus_lk_queries`)
+    on them, when the shared data is there.
+    """
+    from condtrack_cli.frames.synthetic import make_scene, write_scene
+
+    folder = write_scene(make_scene("camera_motion", seed=1, size=size, n_frames=n_frames), work / "speed")
+    rng = np.random.default_rng(0)
+    margin = 24
+    xy = np.column_stack([rng.uniform(margin, size[0] - margin, n_points), rng.uniform(margin, size[1] - margin, n_points)])
+    queries = work / "speed.queries.csv"
+    write_queries(np.column_stack([np.arange(n_points), np.zeros(n_points), xy]), queries)
+    scenes = [(f"synthetic camera_motion {size[0]}x{size[1]}, {n_frames} frames, {n_points} points", folder, queries)]
+    clip = shared / SPEED_CLIP
+    if (clip / "tracks.csv").is_file():
+        rows = versus_lk_queries(load_gt_csv(clip / "tracks.csv"), oxford=False)
+        kitti = work / "speed_kitti.queries.csv"
+        write_queries(rows, kitti)
+        n_clip = len(list(clip.glob("*.png")))
+        scenes.append((f"{SPEED_CLIP} 1242x375, {n_clip} frames, {len(rows)} points", clip, kitti))
+    return scenes
+
+
+def run_plain_lk(folder: Path, queries: Path, out: Path) -> tuple[float, float, int, str]:
+    """Run the plain OpenCV script (``plain_lk.py``) as its own process: like :func:`run_track`."""
+    script = Path(__file__).resolve().parents[1] / "plain_lk.py"
+    return run_process([sys.executable, str(script), str(folder), str(queries), str(out)])
+
+
+def speed_table(work: Path, shared: Path, repeats: int = 3) -> list[str]:
+    """Markdown: whole-process wall time of each method over the plain OpenCV LK script's, per speed scene (issue 13).
+
+    Per scene, ``repeats`` rounds each run the script (``plain_lk.py``: decode, LK
+    with the forward-backward check, CSV out) then each of ``SPEED_METHODS`` (``condtrack
+    track``, start-up and writing the HDF5 file included), one process each; the
+    table gives the median wall time, its ratio to the script's median of the same
+    run and the largest peak RSS.
+    """
+    methods = ("opencv-lk",) + SPEED_METHODS
+    lines = [
+        f"Whole-process wall time, median of {repeats} rounds run one after the other (script, then each method), "
+        "and its ratio to the plain OpenCV LK script (`condtrack_cli/evaluate/plain_lk.py`: calcOpticalFlowPyrLK "
+        "winSize 21, maxLevel 3, forward-backward check 1 px, CSV out) of the same run. Issue 13's targets: "
+        "clf <= 2x, auto <= 3x, cnlf <= 5x, peak RSS <= 300 MiB.",
+        "",
+    ]
+    for title, folder, queries in speed_scenes(work, shared):
+        times, peaks, failed = {m: [] for m in methods}, {m: 0.0 for m in methods}, {}
+        for _ in range(repeats):
+            for method in methods:
+                if method == "opencv-lk":
+                    seconds, rss, code, message = run_plain_lk(folder, queries, work / "speed.lk.csv")
+                else:
+                    seconds, rss, code, message = run_track(
+                        [str(folder), "-p", str(queries), "-m", method, "-o", str(work / f"speed.{method}.h5")])
+                if code:
+                    failed[method] = message
+                times[method].append(seconds)
+                peaks[method] = max(peaks[method], rss)
+        lk = float(np.median(times["opencv-lk"]))
+        lines += [f"Scene: {title}.", "", "| method | wall (s) | × OpenCV LK | peak RSS (MiB) |", "|---|---|---|---|"]
+        for method in methods:
+            if method in failed:
+                lines.append(f"| {method} | failed: {failed[method]} | | |")
+                continue
+            median = float(np.median(times[method]))
+            lines.append(f"| {method} | {median:.2f} | {median / lk:.1f} | {peaks[method]:.0f} |")
+            print(lines[-1], file=sys.stderr)
+        lines.append("")
+    return lines
+
+
+#: Stages of the profile table: (name, file suffix, function) whose cumulative time is the stage's;
+#: the stages are disjoint (none calls another).
+PROFILE_STAGES = (
+    ("frame decoding (cv2.imread)", "~", "<imread>"),
+    ("pyramids and gradients (robust.build_pyramid)", "motion/robust.py", "build_pyramid"),
+    ("global robust motion (robust.estimate_from_pyramids)", "motion/robust.py", "estimate_from_pyramids"),
+    ("local robust motion (local.local_field)", "motion/local.py", "local_field"),
+    ("SSD measurement (ssd.measure)", "measure/ssd.py", "measure"),
+)
+
+
+def profile_shares(profile: Path) -> list[tuple[str, float, int]]:
+    """(stage, share of the process's time, calls) from a cProfile file of ``condtrack track``.
+
+    The stages of PROFILE_STAGES; 'filters and pipeline, rest' is the pipeline's time
+    (pipeline.run) outside them; 'reading queries, writing the output' the track
+    command's outside the pipeline; 'start-up (imports, CLI, configuration)' the rest.
+    """
+    import pstats
+
+    stats = pstats.Stats(str(profile)).stats  # {(file, line, function): (calls, primitive, tottime, cumtime, callers)}
+    total = sum(entry[2] for entry in stats.values())
+
+    def cumulative(suffix: str, function: str) -> tuple[float, int]:
+        found = [(entry[3], entry[1]) for (file, _, name), entry in stats.items()
+                 if file.endswith(suffix) and name == function]
+        return max(found, default=(0.0, 0))  # the outer of wrappers with the same name (ssd.measure)
+
+    rows = [(name, *cumulative(suffix, function)) for name, suffix, function in PROFILE_STAGES]
+    pipeline, _ = cumulative("condtrack_cli/pipeline.py", "run")
+    command, _ = cumulative("cli/track.py", "track")
+    rows.append(("filters and pipeline, rest", pipeline - sum(seconds for _, seconds, _ in rows), 0))
+    rows.append(("reading queries, writing the output", command - pipeline, 0))
+    rows.append(("start-up (imports, CLI, configuration)", total - command, 0))
+    return [(name, seconds / total, calls) for name, seconds, calls in rows]
+
+
+def profile_table(work: Path, shared: Path) -> list[str]:
+    """Markdown: where the time goes (cProfile of one ``condtrack track`` process per method and speed scene)."""
+    scenes = speed_scenes(work, shared)
+    lines = [
+        "Share of one `condtrack track` process's time by stage (cProfile, which slows Python-level code more than "
+        "OpenCV/numpy calls), calls = calls of the stage's function. Scenes: "
+        + "; ".join(f"({chr(97 + i)}) {title}" for i, (title, _, _) in enumerate(scenes)) + ". "
+        "`python -m cProfile -o out.prof -m condtrack_cli track FRAMES -p QUERIES -m METHOD -o out.h5 -q`.",
+        "",
+        "| stage | " + " | ".join(f"{m} ({chr(97 + i)})" for i in range(len(scenes)) for m in SPEED_METHODS) + " |",
+        "|---|" + "---|" * (len(scenes) * len(SPEED_METHODS)),
+    ]
+    columns = []
+    for index, (_, folder, queries) in enumerate(scenes):
+        for method in SPEED_METHODS:
+            profile = work / f"profile.{index}.{method}.prof"
+            subprocess.run([sys.executable, "-m", "cProfile", "-o", str(profile), "-m", "condtrack_cli", "track",
+                            str(folder), "-p", str(queries), "-m", method, "-o", str(work / "profile.h5"), "-q"],
+                           check=True, stdout=subprocess.DEVNULL)
+            columns.append(profile_shares(profile))
+    for row, (name, _, _) in enumerate(columns[0]):
+        cells = [f"{column[row][1]:.0%}" + (f" ({column[row][2]})" if column[row][2] else "") for column in columns]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def batch_table(work: Path, n_clips: int = 8, n_frames: int = 20, size: tuple[int, int] = (320, 240),
+                method: str = "clf") -> list[str]:
+    """Markdown rows: batch throughput (clips per minute) of ``track --out-dir -j J`` for J = 1, 2, 4, ... up to the cores.
+
+    ``n_clips`` synthetic camera_motion clips (seeds 0..n_clips-1) with detected
+    points, one whole ``condtrack track`` process per J (start-up and the
+    workers' start included). Efficiency per core: throughput(J) / (J x
+    throughput(1)); 1.0 is linear scaling. CPU seconds (user + system, all the
+    run's processes) tell the work done from the wait for a busy machine.
+    """
+    import resource
+
+    from condtrack_cli.frames.synthetic import make_scene, write_scene
+    from condtrack_cli.threads import cores
+
+    clips = [str(write_scene(make_scene("camera_motion", seed=i, size=size, n_frames=n_frames), work / "batch" / f"clip{i:03d}"))
+             for i in range(n_clips)]
+    available = cores()
+    jobs = sorted({j for j in (1, 2, 4, 8, 16, 32, 64) if j <= available} | {available})
+    lines = [
+        f"Batch: {n_clips} clips of {n_frames} frames at {size[0]}x{size[1]} (synthetic camera_motion, detected points), "
+        f"`condtrack track CLIPS --out-dir DIR -m {method} -j J`, whole-process wall time; {available} cores.",
+        "",
+        "| -j | wall (s) | clips / min | efficiency per core | CPU (s) |",
+        "|---|---|---|---|---|",
+    ]
+    single = None
+    for count in jobs:
+        out_dir = work / "batch" / f"out-j{count}"
+        before = resource.getrusage(resource.RUSAGE_CHILDREN)
+        seconds, _, code, message = run_track([*clips, "-m", method, "--out-dir", str(out_dir), "-j", str(count)])
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime)
+        if code != 0:
+            lines.append(f"| {count} | failed: {message} | | | |")
+            continue
+        rate = n_clips / seconds * 60.0
+        single = rate if count == 1 else single
+        efficiency = f"{rate / (count * single):.2f}" if single else "n/a"
+        lines.append(f"| {count} | {seconds:.1f} | {rate:.1f} | {efficiency} | {cpu:.1f} |")
+        print(lines[-1], file=sys.stderr)
+    return lines

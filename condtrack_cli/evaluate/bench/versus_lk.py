@@ -1,0 +1,157 @@
+"""The section against OpenCV LK maxLevel 3 (issue 11): real sets and synthetic scenes, with the done-when checks."""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from condtrack_cli.evaluate.bench.common import REPO, fmt, gt_queries, run_track, write_queries
+from condtrack_cli.evaluate.groundtruth import GroundTruth, load_gt_csv
+from condtrack_cli.evaluate.score import score_tracks
+from condtrack_cli.io.read import read_tracks
+
+
+#: Methods of the real-video table, after the OpenCV LK baseline.
+VERSUS_LK_METHODS = ("auto", "clf", "cnlf", "stk")
+
+#: Synthetic scenes of ``condtrack synth`` scored against LK, each at its defaults (seed 0).
+VERSUS_LK_SCENES = ("camera_motion", "occlusion", "ring", "illumination", "fast")
+
+
+def versus_lk_queries(truth: GroundTruth, oxford: bool, max_points: int = 300) -> np.ndarray:
+    """Issue 11's real-video queries: first observation of tracks with >= 5 observations (>= 2 on Oxford sets)."""
+    return gt_queries(truth, min_observations=2 if oxford else 5, max_points=max_points)
+
+
+def score_versus_lk(folder: Path, queries: Path, truth: GroundTruth, work: Path, stem: str) -> dict:
+    """{column: (metrics dict, wall seconds)} for OpenCV LK and ``VERSUS_LK_METHODS`` on one sequence.
+
+    LK runs in this process (frame reading and both LK directions timed); each
+    condtrack method runs as its own ``condtrack track`` process (whole-process
+    wall time, start-up included). A failed method maps to (None, message).
+    """
+    from condtrack_cli.evaluate.opencv_lk import opencv_lk
+    from condtrack_cli.frames.readers import FrameSettings, open_frames
+    from condtrack_cli.queries import read_queries
+
+    started = time.perf_counter()
+    lk = opencv_lk(folder, read_queries(queries, open_frames(FrameSettings(), folder).info))
+    results = {"lk": (score_tracks(lk, truth, "first")[0], time.perf_counter() - started)}
+    for method in VERSUS_LK_METHODS:
+        out = work / f"{stem}.{method}.h5"
+        seconds, _, code, message = run_track([str(folder), "-p", str(queries), "-m", method, "-o", str(out)])
+        results[method] = (None, message) if code else (score_tracks(read_tracks(out)[0], truth, "first")[0], seconds)
+    return results
+
+
+def _cell(result: tuple) -> str:
+    metrics, seconds = result
+    return f"failed: {seconds}" if metrics is None else f"{fmt(metrics['delta_avg'])} ({seconds:.0f} s)"
+
+
+def _delta(results: dict, column: str) -> float:
+    metrics = results[column][0]
+    return np.nan if metrics is None or metrics["delta_avg"] is None else metrics["delta_avg"]
+
+
+def _check(ok: bool, text: str) -> str:
+    return f"- [{'x' if ok else ' '}] {'pass' if ok else 'FAIL'}: {text}"
+
+
+def real_video_table(work: Path, shared: Path, max_points: int = 300) -> list[str]:
+    """Markdown: <δ_avg of OpenCV LK and each method per real set of ``shared``, then issue 11's done-when checks."""
+    columns = ("lk",) + VERSUS_LK_METHODS
+    lines = ["| set | points | " + " | ".join(columns) + " |", "|---|---|" + "---|" * len(columns)]
+    per_set = {}
+    for folder in sorted(shared.glob("*/")) if shared.is_dir() else []:
+        if not (folder / "tracks.csv").is_file():
+            continue
+        truth = load_gt_csv(folder / "tracks.csv")
+        rows = versus_lk_queries(truth, folder.name.startswith("oxford"), max_points)
+        queries = work / f"lk11_{folder.name}.queries.csv"
+        write_queries(rows, queries)
+        per_set[folder.name] = score_versus_lk(folder, queries, truth, work, f"lk11_{folder.name}")
+        lines.append(f"| {folder.name} | {len(rows)} | " + " | ".join(_cell(per_set[folder.name][c]) for c in columns) + " |")
+        print(lines[-1], file=sys.stderr)
+    if not per_set:
+        return [f"{shared} is absent: no real-video table."]
+    kitti = [name for name in per_set if name.startswith("kt3dmoseg")]
+    mean = {c: float(np.mean([_delta(per_set[n], c) for n in kitti])) for c in columns}
+    lines.append("| KITTI mean | | " + " | ".join(f"{mean[c]:.3f}" for c in columns) + " |")
+    checks = [_check(mean["auto"] >= mean["lk"] + 0.07,
+                     f"KITTI mean of auto {mean['auto']:.3f} >= LK mean {mean['lk']:.3f} + 0.07")]
+    for name in ("oxford_dinosaur", "oxford_merton1"):
+        if name in per_set:
+            auto, lk = _delta(per_set[name], "auto"), _delta(per_set[name], "lk")
+            checks.append(_check(auto >= lk, f"{name}: auto {auto:.3f} >= LK {lk:.3f}"))
+    checks += _better_filter_checks(per_set)
+    for name in kitti + [n for n in ("oxford_dinosaur",) if n in per_set]:
+        clf, lk = _delta(per_set[name], "clf"), _delta(per_set[name], "lk")
+        checks.append(_check(clf >= lk, f"{name}: clf {clf:.3f} >= LK {lk:.3f}"))
+    return lines + ["", "Done-when checks of issue 11 (real video):", ""] + checks
+
+
+def _better_filter_checks(per_set: dict) -> list[str]:
+    """One check per set: auto within 0.01 of the better of clf and cnlf."""
+    checks = []
+    for name, results in per_set.items():
+        auto, best = _delta(results, "auto"), max(_delta(results, "clf"), _delta(results, "cnlf"))
+        checks.append(_check(auto >= best - 0.01, f"{name}: auto {auto:.3f} >= better filter {best:.3f} - 0.01"))
+    return checks
+
+
+def synthetic_versus_lk_table(work: Path) -> list[str]:
+    """Markdown: the ``condtrack synth`` scenes at their defaults, LK and each method, then issue 11's checks."""
+    from condtrack_cli.frames.synthetic import make_scene, write_scene
+
+    columns = ("lk",) + VERSUS_LK_METHODS
+    lines = ["| scene | points | " + " | ".join(f"{c} <δ / AJ / OA" for c in columns) + " |",
+             "|---|---|" + "---|" * len(columns)]
+    per_scene = {}
+    for scene in VERSUS_LK_SCENES:
+        folder = write_scene(make_scene(scene), work / f"synth_{scene}")
+        truth = load_gt_csv(folder / "tracks.csv")
+        per_scene[scene] = score_versus_lk(folder, folder / "queries.csv", truth, work, f"synth_{scene}")
+        cells = [
+            "failed" if m is None else " / ".join(fmt(m[key]) for key in ("delta_avg", "AJ", "OA"))
+            for m, _ in (per_scene[scene][c] for c in columns)
+        ]
+        lines.append(f"| {scene} | {len(truth.point_id)} | " + " | ".join(cells) + " |")
+        print(lines[-1], file=sys.stderr)
+
+    def mean(column: str, key: str) -> float:
+        values = [per_scene[s][column][0] for s in per_scene]
+        return float(np.mean([np.nan if m is None or m[key] is None else m[key] for m in values]))
+
+    means = {key: mean("auto", key) for key in ("delta_avg", "AJ", "OA")}
+    checks = [
+        _check(means["delta_avg"] >= 0.88, f"auto mean <δ_avg {means['delta_avg']:.3f} >= 0.88"),
+        _check(means["AJ"] >= 0.75, f"auto mean AJ {means['AJ']:.3f} >= 0.75"),
+        _check(means["OA"] >= 0.90, f"auto mean OA {means['OA']:.3f} >= 0.90"),
+    ]
+    for scene, results in per_scene.items():
+        auto, lk = _delta(results, "auto"), _delta(results, "lk")
+        checks.append(_check(auto >= lk, f"{scene}: auto {auto:.3f} >= LK {lk:.3f}"))
+    checks += _better_filter_checks(per_scene)
+    return lines + ["", "Done-when checks of issue 11 (synthetic scenes):", ""] + checks
+
+
+def versus_lk_section(work: Path, shared: Path = REPO.parent / "shared" / "data") -> list[str]:
+    """The results.md section of issue 11: real video and synthetic scenes against OpenCV LK maxLevel 3."""
+    return [
+        "## Against OpenCV LK (issue 11)",
+        "",
+        "OpenCV LK: `calcOpticalFlowPyrLK` winSize 21, maxLevel 3, forward-backward check 1 px "
+        "(`condtrack_cli/evaluate/opencv_lk.py`), run and timed in this process; the methods' times are whole "
+        "`condtrack track` processes. Real sets: queries = first observation of tracks with >= 5 observations "
+        "(>= 2 on the Oxford sets), at most 300 per set taken evenly; <δ_avg in the 'first' query mode; "
+        "cells are <δ_avg (wall seconds). Track files: bench/out/lk11_<set>.<method>.h5.",
+        "",
+    ] + real_video_table(work, shared) + [
+        "",
+        "Synthetic scenes of `condtrack synth` at their defaults (seed 0); track files bench/out/synth_<scene>.<method>.h5.",
+        "",
+    ] + synthetic_versus_lk_table(work)
