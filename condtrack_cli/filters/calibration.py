@@ -69,6 +69,11 @@ class ErrorModel:
         self.detour[index] = 0.0
         self.reported[index] = sigma
 
+    def _coasting(self, index: np.ndarray) -> np.ndarray:
+        """C (n, 2, 2) of points ``index``: t^2 q I + the accumulated disagreement's outer product (px^2)."""
+        detour = self.detour[index]
+        return (self.coasted[index] ** 2 * self.miss)[:, None, None] * np.eye(2) + np.einsum("ni,nj->nij", detour, detour)
+
     def begin_frame(self) -> None:
         """Before a frame's steps: forget part of the pooled innovation statistics."""
         self._nis *= FORGET
@@ -92,8 +97,7 @@ class ErrorModel:
             self._nis += (nis.sum(), nis.size)
             self._miss += ((nu * nu).sum(), nu.shape[0])
         lam = self.scale
-        eye = np.eye(2)
-        before = lam * s_pred + (self.coasted[index] ** 2 * self.miss)[:, None, None] * eye  # where the patch may be
+        before = lam * s_pred + self._coasting(index)  # where the patch may be
         # The probability that the patch lies in the gate {nu^T S^-1 nu <= gamma} under N(predicted, before),
         # isotropic approximation: 1 - exp(-gamma s_gate / (2 s_before)); a match found when it does not is wrong.
         ratio = np.trace(S, axis1=1, axis2=2) / np.trace(before, axis1=1, axis2=2)
@@ -103,7 +107,5 @@ class ErrorModel:
         scaled = max(lam, 1.0) * sigma
         self.coasted[index] = np.where(found, 0, self.coasted[index] + 1)
         self.detour[index] = np.where(found[:, None], 0.0, self.detour[index] + disagreement)
-        detour = self.detour[index]
-        coast = (self.coasted[index] ** 2 * self.miss)[:, None, None] * eye + np.einsum("ni,nj->nij", detour, detour)
-        self.reported[index] = scaled + self.drift[index] + coast
+        self.reported[index] = scaled + self.drift[index] + self._coasting(index)
         self.drift[index[retaken]] += lam * sigma[retaken]  # the new reference's offset, from the next frame on
