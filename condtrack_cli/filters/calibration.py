@@ -72,7 +72,7 @@ class ErrorModel:
     def _coasting(self, index: np.ndarray) -> np.ndarray:
         """C (n, 2, 2) of points ``index``: t^2 q I + the accumulated disagreement's outer product (px^2)."""
         detour = self.detour[index]
-        return (self.coasted[index] ** 2 * self.miss)[:, None, None] * np.eye(2) + np.einsum("ni,nj->nij", detour, detour)
+        return (self.coasted[index] ** 2 * self.miss)[:, None, None] * np.eye(2) + 0.5 * np.einsum("ni,nj->nij", detour, detour)
 
     def begin_frame(self) -> None:
         """Before a frame's steps: forget part of the pooled innovation statistics."""
