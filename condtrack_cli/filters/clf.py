@@ -138,7 +138,8 @@ class CLFTracker(MDRTracker):
         self.errors = errors or ErrorModel(len(queries), self.reference.measure.settings.gamma)
         self.local = LocalMotion(self.motion_settings) if settings.dynamics != "global" else None
         self.on_local = np.full(len(queries), settings.dynamics != "global")  #: (P,) predicted by the local motion
-        self.transitions = TransitionLog(len(queries), A=(2, 2), x_pred=(2,), sigma_pred=(2, 2)) if config.smooth else None
+        shapes = dict(A=(2, 2), x_pred=(2,), sigma_pred=(2, 2), sigma_post=(2, 2))
+        self.transitions = TransitionLog(len(queries), **shapes) if config.smooth else None
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         super()._start(index, frame)
@@ -171,6 +172,8 @@ class CLFTracker(MDRTracker):
         if self.settings.dynamics == "select":
             self._choose(index, measured, x_global, x_local)
         self.xy[index], self.cov[index] = kalman.update(x_pred, sigma_pred, measured.z, measured.R_used, measured.valid)
+        if self.transitions is not None:  # the filtered covariance (the reported one is the error model's)
+            self.transitions.record(frame.index, index, sigma_post=self.cov[index])
         self.visible[index] = measured.valid
         self.z[index], self.R[index] = measured.z, measured.R
         retaken = self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
@@ -203,7 +206,9 @@ class CLFTracker(MDRTracker):
         linked = np.isfinite(x_pred).all(axis=-1)
         if members is not None:
             linked[:, 1:] &= members[:, 1:] & members[:, :-1]
-        xy, cov = rts(tracks.xy, tracks.cov, x_pred, self.transitions.stacked("sigma_pred", n_frames),
+        sigma_post = self.transitions.stacked("sigma_post", n_frames)
+        filtered = np.where(np.isfinite(sigma_post), sigma_post, tracks.cov)  # the query frames: the initial covariance
+        xy, cov = rts(tracks.xy, filtered, x_pred, self.transitions.stacked("sigma_pred", n_frames),
                       self.transitions.stacked("A", n_frames), linked)
         return dataclasses.replace(tracks, xy=xy, cov=cov)
 
