@@ -62,6 +62,7 @@ from pydantic import Field
 
 from condtrack_cli.config import Config, StageSettings
 from condtrack_cli.filters.base import Tracker
+from condtrack_cli.filters.calibration import ErrorModel
 from condtrack_cli.filters.clf import CLFTracker, build_stage, linear_dynamics
 from condtrack_cli.filters.cnlf import CNLFTracker, inverse2
 from condtrack_cli.filters.reference import ReferenceMatcher
@@ -95,8 +96,9 @@ class AutoTracker(Tracker):
         self.settings = settings
         p = len(queries)
         reference = ReferenceMatcher(build_stage(config, "measure"), config.filters["clf"], p)
-        self.clf = CLFTracker(config.filters["clf"], queries, info, config, reference)
-        self.cnlf = CNLFTracker(config.filters["cnlf"], queries, info, config, rng, reference)
+        self.errors = ErrorModel(p, reference.measure.settings.gamma)
+        self.clf = CLFTracker(config.filters["clf"], queries, info, config, reference, self.errors)
+        self.cnlf = CNLFTracker(config.filters["cnlf"], queries, info, config, rng, reference, self.errors)
         self.q_floor = config.stage("motion").settings.q_floor
         self.evidence = np.zeros(p)  #: averaged closer_to_local of the point's measurements
         self.on_cnlf = np.zeros(p, bool)
@@ -109,6 +111,10 @@ class AutoTracker(Tracker):
         estimate = super().step(frame, prev)
         self.cnlf.end_frame()
         return estimate
+
+    def reported_cov(self) -> np.ndarray:
+        """The shared error model's covariance (``calibration.py``); ``cov`` is what is handed over."""
+        return self.errors.reported.copy()
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         self.cnlf.xy[index], self.cnlf.visible[index] = self.xy[index], self.visible[index]

@@ -49,9 +49,13 @@ class Tracker:
             self.method_code[new] = method_code(self.method)
             self._start(new, frame)
         return FrameEstimate(
-            xy=self.xy.copy(), cov=self.cov.copy(), visible=self.visible.copy(),
+            xy=self.xy.copy(), cov=self.reported_cov(), visible=self.visible.copy(),
             z=self.z.copy(), R=self.R.copy(), method=self.method_code.copy(),
         )
+
+    def reported_cov(self) -> np.ndarray:
+        """(P, 2, 2) the covariance reported for the current frame: the filter's own unless overridden."""
+        return self.cov.copy()
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         """Initialise the filter state of points ``index`` (positions already set)."""

@@ -39,6 +39,7 @@ from condtrack_cli import registry
 from condtrack_cli.config import Config
 from condtrack_cli.filters import kalman
 from condtrack_cli.filters.base import Tracker
+from condtrack_cli.filters.calibration import ErrorModel
 from condtrack_cli.filters.reference import (
     GatedMeasurement, InitialStateSettings, MeasuredFilterSettings, ReferenceMatcher,
 )
@@ -131,17 +132,28 @@ class CLFTracker(MDRTracker):
     smoother = "rts"
 
     def __init__(self, settings: CLFSettings, queries: Queries, info: SequenceInfo, config: Config,
-                 reference: ReferenceMatcher | None = None):
+                 reference: ReferenceMatcher | None = None, errors: ErrorModel | None = None):
         super().__init__(settings, queries, info, config)
         self.reference = reference or ReferenceMatcher(build_stage(config, "measure"), settings, len(queries))
+        self.errors = errors or ErrorModel(len(queries), self.reference.measure.settings.gamma)
         self.local = LocalMotion(self.motion_settings) if settings.dynamics != "global" else None
         self.on_local = np.full(len(queries), settings.dynamics != "global")  #: (P,) predicted by the local motion
-        self.transitions = TransitionLog(len(queries), A=(2, 2), x_pred=(2,), sigma_pred=(2, 2)) if config.smooth else None
+        shapes = dict(A=(2, 2), x_pred=(2,), sigma_pred=(2, 2), sigma_post=(2, 2))
+        self.transitions = TransitionLog(len(queries), **shapes) if config.smooth else None
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         super()._start(index, frame)
         self.on_local[index] = self.local is not None
         self.reference.start(index, frame, self.xy[index])
+        self.errors.start(index, self.cov[index])
+
+    def step(self, frame: Frame, prev: Frame | None):
+        self.errors.begin_frame()
+        return super().step(frame, prev)
+
+    def reported_cov(self) -> np.ndarray:
+        """The error model's covariance (``calibration.py``), not the one the gate uses."""
+        return self.errors.reported.copy()
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
         x_prev, found_before = self.xy[index].copy(), self.visible[index].copy()
@@ -160,9 +172,14 @@ class CLFTracker(MDRTracker):
         if self.settings.dynamics == "select":
             self._choose(index, measured, x_global, x_local)
         self.xy[index], self.cov[index] = kalman.update(x_pred, sigma_pred, measured.z, measured.R_used, measured.valid)
+        if self.transitions is not None:  # the filtered covariance (the reported one is the error model's)
+            self.transitions.record(frame.index, index, sigma_post=self.cov[index])
         self.visible[index] = measured.valid
         self.z[index], self.R[index] = measured.z, measured.R
-        self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
+        retaken = self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
+        disagreement = x_local - x_global if self.local is not None else np.zeros_like(x_global)
+        self.errors.update(index, x_pred, sigma_pred, measured.z, measured.R_used, measured.valid, self.xy[index],
+                           self.cov[index], retaken, disagreement)
 
     def _choose(self, index: np.ndarray, measured: GatedMeasurement, x_global: np.ndarray, x_local: np.ndarray) -> None:
         """``select``: which motion predicts points ``index`` next frame, from this frame's miss of each.
@@ -189,7 +206,9 @@ class CLFTracker(MDRTracker):
         linked = np.isfinite(x_pred).all(axis=-1)
         if members is not None:
             linked[:, 1:] &= members[:, 1:] & members[:, :-1]
-        xy, cov = rts(tracks.xy, tracks.cov, x_pred, self.transitions.stacked("sigma_pred", n_frames),
+        sigma_post = self.transitions.stacked("sigma_post", n_frames)
+        filtered = np.where(np.isfinite(sigma_post), sigma_post, tracks.cov)  # the query frames: the initial covariance
+        xy, cov = rts(tracks.xy, filtered, x_pred, self.transitions.stacked("sigma_pred", n_frames),
                       self.transitions.stacked("A", n_frames), linked)
         return dataclasses.replace(tracks, xy=xy, cov=cov)
 

@@ -34,12 +34,14 @@ from pydantic import Field
 
 from condtrack_cli.config import Config
 from condtrack_cli.filters.base import Tracker
+from condtrack_cli.filters.calibration import ErrorModel
 from condtrack_cli.filters.clf import build_stage
 from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, sample_gauss2
 from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMatcher
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise
 from condtrack_cli.filters.smoother import TransitionLog, particle_smoother
 from condtrack_cli.motion.local import LocalMotion
+from condtrack_cli.motion.robust import GlobalMotion, displacement
 from condtrack_cli.registry import register
 from condtrack_cli.types import FrameEstimate, Frame, Queries, SequenceInfo, Tracks
 
@@ -108,11 +110,12 @@ class CNLFTracker(Tracker):
     smoother = "ffbsm"
 
     def __init__(self, settings: CNLFSettings, queries: Queries, info: SequenceInfo, config: Config,
-                 rng: np.random.Generator, reference: ReferenceMatcher | None = None):
+                 rng: np.random.Generator, reference: ReferenceMatcher | None = None, errors: ErrorModel | None = None):
         super().__init__(queries, info)
         self.settings, self.rng = settings, rng
         self.local = LocalMotion(config.stage("motion").settings)
         self.reference = reference or ReferenceMatcher(build_stage(config, "measure"), settings, len(queries))
+        self.errors = errors or ErrorModel(len(queries), self.reference.measure.settings.gamma)
         p, n = len(queries), settings.particles
         self.particles = np.full((p, n, 2), np.nan)
         self.log_w = np.full((p, n), -np.log(n))
@@ -130,6 +133,7 @@ class CNLFTracker(Tracker):
 
     def begin_frame(self) -> None:
         """Before a frame: no particle has been resampled yet (each is its own parent)."""
+        self.errors.begin_frame()
         self.ancestors = np.broadcast_to(np.arange(self.settings.particles), self.log_w.shape).copy()
 
     def end_frame(self) -> None:
@@ -155,6 +159,11 @@ class CNLFTracker(Tracker):
         self.reference.start(index, frame, self.xy[index])
         s = self.settings
         self.adopt(index, frame.index, self.xy[index], np.repeat(s.initial_std**2 * np.eye(2)[None], index.size, 0))
+        self.errors.start(index, self.cov[index])
+
+    def reported_cov(self) -> np.ndarray:
+        """The error model's covariance (``calibration.py``), not the particles' spread alone."""
+        return self.errors.reported.copy()
 
     def _report(self, index: np.ndarray) -> None:
         """xy and cov of points ``index``: the weighted mean and covariance of the current particles."""
@@ -175,7 +184,8 @@ class CNLFTracker(Tracker):
         if self.transitions is not None:  # particles drawn this frame from the previous one's: smoothable
             linked = self.lineage_start[index] < frame.index
             self.transitions.record(frame.index, index[linked], mu=mu[linked], Q=Q[linked])
-        measured = self.reference.measure_in_gate(index, frame, *mixture_moments(self.log_w[index], mu, Q))
+        gate_mean, gate_cov = mixture_moments(self.log_w[index], mu, Q)
+        measured = self.reference.measure_in_gate(index, frame, gate_mean, gate_cov)
         particles, log_w = propagate(self.rng, self.log_w[index], mu, Q, measured.z, measured.R_used, measured.valid)
         picks, log_w = resample(self.rng, log_w, self.settings)
         self.particles[index] = np.take_along_axis(particles, picks[..., None], axis=1)
@@ -184,7 +194,11 @@ class CNLFTracker(Tracker):
         self._report(index)
         self.visible[index] = measured.valid
         self.z[index], self.R[index] = measured.z, measured.R
-        self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
+        retaken = self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
+        fit = GlobalMotion(self.local.settings).fit(prev, frame)  # cached by the local field
+        disagreement = field.displacement(x_prev) - displacement(fit, x_prev)
+        self.errors.update(index, gate_mean, gate_cov, measured.z, measured.R_used, measured.valid, self.xy[index],
+                           self.cov[index], retaken, disagreement)
 
     def finish(self, history: list[FrameEstimate]) -> Tracks:
         """The trajectory estimate: the weighted mean of the particle paths with the final weights."""

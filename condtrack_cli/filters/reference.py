@@ -84,7 +84,7 @@ class ReferenceMatcher:
     def refresh(
         self, index: np.ndarray, prev: Frame, x_prev: np.ndarray, frame: Frame, x_post: np.ndarray,
         found_before: np.ndarray, measured: GatedMeasurement,
-    ) -> None:
+    ) -> np.ndarray:
         """Reference update (paper §5.2): re-take the reference patch at the posterior position ``x_post``.
 
         With m template pixels and sigma the acquisition noise, m 2 sigma^2 is the
@@ -97,16 +97,19 @@ class ReferenceMatcher:
         ``update_abruptness`` r_k(z_k), i.e. the drift did not all happen since the
         last frame. An occluder edge creeping over a clean patch makes nearly the
         whole residual appear in one frame and fails (3); a whole occluder fails
-        (1). x_prev, x_post: (n, 2); found_before: (n,) bool.
+        (1). x_prev, x_post: (n, 2); found_before: (n,) bool. Returns (n,) bool: re-taken.
         """
         s = self.settings
+        retaken = np.zeros(len(index), bool)
         if not s.reference_update:
-            return
+            return retaken
         noise_ssd = self.templates.shape[1] * self.templates.shape[2] * 2 * self.noise_sigma**2
         candidates = np.flatnonzero(measured.valid & found_before & (measured.residual > s.update_residual * noise_ssd))
         if not candidates.size:
-            return
+            return retaken
         patches = self.measure.templates(frame.gray, x_post[candidates])
         before = self.measure.templates(prev.gray, x_prev[candidates])
         steady = self.measure.cost(patches, before) <= s.update_abruptness * measured.residual[candidates]
         self.templates[index[candidates[steady]]] = patches[steady]
+        retaken[candidates[steady]] = True
+        return retaken
