@@ -139,6 +139,22 @@ def test_smoothed_tracks_are_deterministic_and_differ_from_the_filtered(shifted_
     assert not np.array_equal(first.cov, filtered.cov)
 
 
+def test_smoothing_narrows_the_filters_covariance_and_keeps_the_error_models_excess(shifted_folder):
+    """RTS narrows Sigma only; what the error model added (filters/calibration.py) stays, frame by frame.
+
+    The last frame has no later frame: its smoothed covariance is the reported
+    one, error model included; on the others it is no wider than the reported one.
+    """
+    folder, _ = shifted_folder
+    queries = np.array([[0, 120.0, 100.0], [0, 200.0, 150.0], [0, 160.0, 60.0]])
+    filtered = ct.track(folder, queries=queries, method="clf")
+    smoothed = ct.track(folder, queries=queries, method="clf", config={"filter": {"smooth": True}})
+    assert np.array_equal(smoothed.cov[:, -1], filtered.cov[:, -1])
+    trace = lambda c: np.trace(c, axis1=-2, axis2=-1)  # noqa: E731
+    assert (trace(smoothed.cov) <= trace(filtered.cov) + 1e-12).all()
+    assert (trace(smoothed.cov[:, 1:-1]) < trace(filtered.cov[:, 1:-1])).any()
+
+
 def test_smooth_flag_is_recorded_in_the_hdf5_and_refused_for_a_method_without_smoother(shifted_folder, tmp_path):
     folder, _ = shifted_folder
     queries = tmp_path / "q.csv"

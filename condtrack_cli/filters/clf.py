@@ -43,7 +43,7 @@ from condtrack_cli.filters.calibration import ErrorModel
 from condtrack_cli.filters.reference import (
     GatedMeasurement, InitialStateSettings, MeasuredFilterSettings, ReferenceMatcher,
 )
-from condtrack_cli.filters.smoother import TransitionLog, rts
+from condtrack_cli.filters.smoother import TransitionLog, error_excess, rts
 from condtrack_cli.motion.local import LocalField, LocalMotion
 from condtrack_cli.motion.robust import displacement, jacobian, state_noise
 from condtrack_cli.registry import register
@@ -138,7 +138,7 @@ class CLFTracker(MDRTracker):
         self.errors = errors or ErrorModel(len(queries), self.reference.measure.settings.gamma)
         self.local = LocalMotion(self.motion_settings) if settings.dynamics != "global" else None
         self.on_local = np.full(len(queries), settings.dynamics != "global")  #: (P,) predicted by the local motion
-        shapes = dict(A=(2, 2), x_pred=(2,), sigma_pred=(2, 2), sigma_post=(2, 2))
+        shapes = dict(A=(2, 2), x_pred=(2,), sigma_pred=(2, 2), sigma_post=(2, 2), excess=(2, 2))
         self.transitions = TransitionLog(len(queries), **shapes) if config.smooth else None
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
@@ -180,6 +180,8 @@ class CLFTracker(MDRTracker):
         disagreement = x_local - x_global if self.local is not None else np.zeros_like(x_global)
         self.errors.update(index, x_pred, sigma_pred, measured.z, measured.R_used, measured.valid, self.xy[index],
                            self.cov[index], retaken, disagreement)
+        if self.transitions is not None:
+            self.transitions.record(frame.index, index, excess=self.errors.reported[index] - self.cov[index])
 
     def _choose(self, index: np.ndarray, measured: GatedMeasurement, x_global: np.ndarray, x_local: np.ndarray) -> None:
         """``select``: which motion predicts points ``index`` next frame, from this frame's miss of each.
@@ -210,7 +212,7 @@ class CLFTracker(MDRTracker):
         filtered = np.where(np.isfinite(sigma_post), sigma_post, tracks.cov)  # the query frames: the initial covariance
         xy, cov = rts(tracks.xy, filtered, x_pred, self.transitions.stacked("sigma_pred", n_frames),
                       self.transitions.stacked("A", n_frames), linked)
-        return dataclasses.replace(tracks, xy=xy, cov=cov)
+        return dataclasses.replace(tracks, xy=xy, cov=cov + error_excess(self.transitions.stacked("excess", n_frames)))
 
 
 @register("filter", "mdr", MDRSettings, "MDR baseline: the global robust motion alone, no measurement")

@@ -39,7 +39,7 @@ from condtrack_cli.filters.clf import build_stage
 from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, sample_gauss2
 from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMatcher
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise
-from condtrack_cli.filters.smoother import TransitionLog, particle_smoother
+from condtrack_cli.filters.smoother import TransitionLog, error_excess, particle_smoother
 from condtrack_cli.motion.local import LocalMotion
 from condtrack_cli.motion.robust import GlobalMotion, displacement
 from condtrack_cli.registry import register
@@ -123,7 +123,7 @@ class CNLFTracker(Tracker):
         self.particle_history: list[np.ndarray] = []  #: per frame, (P, N, 2) particles, NaN off the CNLF
         self.store_particles = config.output.store_particles
         self.ancestor_history: list[np.ndarray] = []  #: per frame, (P, N) index of each particle's parent
-        self.transitions = TransitionLog(p, log_w=(n,), mu=(n, 2), Q=(n, 2, 2)) if config.smooth else None
+        self.transitions = TransitionLog(p, log_w=(n,), mu=(n, 2), Q=(n, 2, 2), excess=(2, 2)) if config.smooth else None
 
     def step(self, frame: Frame, prev: Frame | None) -> FrameEstimate:
         self.begin_frame()
@@ -199,6 +199,8 @@ class CNLFTracker(Tracker):
         disagreement = field.displacement(x_prev) - displacement(fit, x_prev)
         self.errors.update(index, gate_mean, gate_cov, measured.z, measured.R_used, measured.valid, self.xy[index],
                            self.cov[index], retaken, disagreement)
+        if self.transitions is not None:
+            self.transitions.record(frame.index, index, excess=self.errors.reported[index] - self.cov[index])
 
     def finish(self, history: list[FrameEstimate]) -> Tracks:
         """The trajectory estimate: the weighted mean of the particle paths with the final weights."""
@@ -215,6 +217,7 @@ class CNLFTracker(Tracker):
             particles, self.transitions.stacked("log_w", n_frames), mu, self.transitions.stacked("Q", n_frames), linked,
         )
         on = np.isfinite(particles).all(axis=(2, 3))
+        cov = cov + error_excess(self.transitions.stacked("excess", n_frames))
         return dataclasses.replace(
             tracks, xy=np.where(on[..., None], xy, tracks.xy), cov=np.where(on[..., None, None], cov, tracks.cov),
         )

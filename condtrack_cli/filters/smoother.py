@@ -69,6 +69,16 @@ class TransitionLog:
         return out
 
 
+def error_excess(excess: np.ndarray) -> np.ndarray:
+    """(P, F, 2, 2) what the error model (``calibration.py``) added to the filter's covariance, 0 where not recorded.
+
+    The smoothers narrow the filter's own covariance only: the later frames do not
+    undo a reference patch's drift or a wrong match, so the smoothed covariance
+    keeps the excess the forward pass reported on the same frame (px^2).
+    """
+    return np.where(np.isnan(excess), 0.0, excess)
+
+
 def rts(
     xy: np.ndarray, cov: np.ndarray, x_pred: np.ndarray, cov_pred: np.ndarray, A: np.ndarray, linked: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
