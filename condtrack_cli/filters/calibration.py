@@ -48,8 +48,9 @@ The model, per point, reported covariance = max(lambda, 1) Sigma + D + C:
   occluder; a point on parallax may follow either).
 
 The filter's own state (its covariance, gate and gain) is unchanged, so positions
-are those of the filter without the model, bit for bit; ``filter.smooth`` still
-smooths the filter's own covariance.
+are those of the filter without the model, bit for bit; ``filter.smooth`` smooths
+the filter's own covariance and adds back each frame's excess
+(``smoother.error_excess``).
 """
 
 from __future__ import annotations
