@@ -12,7 +12,7 @@ from pydantic import ValidationError
 
 from condtrack_cli import registry
 from condtrack_cli.measure.noise import estimate_noise_sigma
-from condtrack_cli.measure.response import response_covariance, unit_sum_c
+from condtrack_cli.measure.response import response_covariance, unit_sum_c, within_2px
 from condtrack_cli.measure.ssd import Measurement, SSDMeasure, SSDSettings, measure
 from condtrack_cli.measure.surfaces import extract_templates, matching_cost
 
@@ -357,3 +357,15 @@ def test_registered_stage_wraps_the_functions():
     assert isinstance(a, Measurement)
     for field in ("z", "R", "residual", "informative"):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+
+
+def test_within_2px_is_the_5x5_binary_dilation_of_each_slice():
+    """The one-peak test's dilation equals scipy.ndimage's with a 5 x 5 square per slice (exact: booleans)."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(3)
+    structure = np.zeros((3, 5, 5), bool)
+    structure[1] = True  # within one slice only
+    for shape, density in (((7, 9, 9), 0.05), ((4, 5, 11), 0.2), ((3, 1, 1), 0.5), ((0, 9, 9), 0.1)):
+        cells = rng.random(shape) < density
+        assert np.array_equal(within_2px(cells), ndimage.binary_dilation(cells, structure=structure))

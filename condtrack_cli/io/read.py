@@ -4,7 +4,8 @@ A CSV holds no frame count: its tracks span frames 0 .. the last frame that has
 a row. Nor does it hold queries: a point's query is taken to be its first row
 (frame 0 once backward tracking filled the frames before the query). A CSV
 whose header is not the schema's exact header line, and an HDF5 file of an
-unknown ``schema_version``, are refused (docs/schema.md).
+unknown ``schema_version``, are refused (docs/schema.md). h5py is imported
+only by the functions that open an HDF5 file (start-up time, issue 13).
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ import contextlib
 from pathlib import Path
 from typing import Any, Iterator
 
-import h5py
 import numpy as np
 
 from condtrack_cli import SCHEMA_VERSION
@@ -85,6 +85,8 @@ def _check_layout(tracks: Tracks) -> None:
 
 
 def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
+    import h5py
+
     try:
         f = h5py.File(path, "r")
     except OSError as error:
@@ -129,6 +131,8 @@ def stored_particles(path: Path, tracks: Tracks) -> Iterator[Any]:
     if not is_hdf5(path):
         yield None
         return
+    import h5py
+
     with h5py.File(path, "r") as f:
         dataset = f.get("particles/xy")
         if dataset is not None and (
@@ -166,6 +170,8 @@ def stored_datasets(path: Path) -> tuple[str, str]:
     """('stored' / 'not stored') for the measurements and the particles of a track file."""
     if not is_hdf5(path):
         return "not stored (CSV)", "not stored (CSV)"
+    import h5py
+
     with h5py.File(path, "r") as f:
         measurements = "stored" if "measurements/z" in f else "not stored"
         particles = f.get("particles/xy")

@@ -9,14 +9,15 @@ written ``inf`` and an undefined one ``nan``.
 
 HDF5: datasets written without timestamps, with fixed chunking and gzip
 compression, so that one input, config and seed give identical datasets.
+h5py is imported by the HDF5 writer only: a run writing CSV does not load it
+(start-up time, issue 13).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import h5py
 import numpy as np
 
 from condtrack_cli import COORDINATES, SCHEMA_VERSION, __version__
@@ -25,6 +26,9 @@ from condtrack_cli.io.atomic import atomic_path
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.registry import get, method_codes, register
 from condtrack_cli.types import SequenceInfo, Tracks
+
+if TYPE_CHECKING:
+    import h5py
 
 CSV_COLUMNS = ("point_id", "frame", "x", "y", "cov_xx", "cov_xy", "cov_yy", "visible", "method")
 FLOAT_FORMATS = {"x": "%.6f", "y": "%.6f", "cov_xx": "%.6e", "cov_xy": "%.6e", "cov_yy": "%.6e"}
@@ -74,6 +78,8 @@ def _dataset(group: h5py.Group, name: str, data: np.ndarray, settings: OutputSet
 @register("output", "hdf5", OutputSettings, "self-describing HDF5 with measurements and metadata")
 def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
     """Write the self-describing HDF5 file (docs/schema.md)."""
+    import h5py  # here only: CSV runs do not pay its import
+
     q = tracks.queries
     # No chunk cache: each chunk is written when its dataset is created, so the layout follows the order
     # below. With the cache, chunks were flushed at close in an order that varied between processes
