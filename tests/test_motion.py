@@ -15,17 +15,10 @@ import numpy as np
 import pytest
 
 from condtrack_cli import registry
-from condtrack_cli.motion.robust import (
-    GlobalMotion,
-    MotionFit,
-    RobustMotionSettings,
-    displacement,
-    estimate_motion,
-    jacobian,
-    motion_basis,
-    state_noise,
-)
 from condtrack_cli.motion._blocks import block_displacements, block_hypotheses
+from condtrack_cli.motion.model import MotionFit, displacement, jacobian, motion_basis
+from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings, estimate_motion
+from condtrack_cli.motion.state_noise import state_noise
 from condtrack_cli.types import Frame
 
 from conftest import load_asset, render_pair

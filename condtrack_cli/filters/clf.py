@@ -45,7 +45,8 @@ from condtrack_cli.filters.reference import (
 )
 from condtrack_cli.filters.smoother import TransitionLog, error_excess, rts
 from condtrack_cli.motion.local import LocalField, LocalMotion
-from condtrack_cli.motion.robust import displacement, jacobian, state_noise
+from condtrack_cli.motion.model import displacement, jacobian
+from condtrack_cli.motion.state_noise import state_noise
 from condtrack_cli.registry import register
 from condtrack_cli.types import Frame, Queries, SequenceInfo, Tracks
 

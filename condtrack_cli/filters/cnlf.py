@@ -41,7 +41,8 @@ from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMat
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise
 from condtrack_cli.filters.smoother import TransitionLog, error_excess, particle_smoother
 from condtrack_cli.motion.local import LocalMotion
-from condtrack_cli.motion.robust import GlobalMotion, displacement
+from condtrack_cli.motion.model import displacement
+from condtrack_cli.motion.robust import GlobalMotion
 from condtrack_cli.registry import register
 from condtrack_cli.types import FrameEstimate, Frame, Queries, SequenceInfo, Tracks
 

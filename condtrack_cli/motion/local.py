@@ -93,20 +93,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from condtrack_cli.motion.model import MotionFit, displacement, warp_maps
+from condtrack_cli.motion.pyramid import Pyramid, build_pyramid, frame_pyramid, usable_levels
 from condtrack_cli.motion.robust import (
     MAD_TO_SIGMA,
     GlobalMotion,
-    MotionFit,
-    Pyramid,
     RobustMotionSettings,
     _sample,
-    build_pyramid,
-    displacement,
     estimate_from_pyramids,
-    frame_pyramid,
     robust_weights,
-    usable_levels,
-    warp_maps,
 )
 from condtrack_cli.types import Frame
 

@@ -55,7 +55,6 @@ Conventions and choices:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Literal
 
 import cv2
@@ -64,6 +63,8 @@ from pydantic import Field
 
 from condtrack_cli.config import StageSettings
 from condtrack_cli.motion._blocks import block_displacements, block_hypotheses
+from condtrack_cli.motion.model import MotionFit, motion_basis, warp_maps
+from condtrack_cli.motion.pyramid import Pyramid, build_pyramid, frame_pyramid, usable_levels
 from condtrack_cli.registry import register
 from condtrack_cli.types import Frame
 
@@ -100,15 +101,10 @@ class RobustMotionSettings(StageSettings):
 #: Weak prior std of each parameter (px); see the module docstring.
 THETA_PRIOR_STD = 100.0
 
-#: Std (px) of the Gaussian smoothing both frames before estimation; see the module docstring.
-PRESMOOTH_SIGMA = 1.0
 
 #: Normal-consistency factor of the MAD: sigma = 1.4826 median |r - median r|.
 MAD_TO_SIGMA = 1.4826
 
-#: Smallest side (px) of the coarsest pyramid level: below it the level is too
-#: blurred to tell a textured object's motion from the background's.
-MIN_COARSE_SIDE = 64
 
 #: RANSAC inlier distance of a block displacement (px of the level matched).
 INLIER_DISTANCE = 0.5
@@ -117,122 +113,6 @@ INLIER_DISTANCE = 0.5
 #: asymptotic efficiency under Gaussian noise: Tukey 4.6851 and Cauchy 2.3849
 #: are the textbook values; 3.7874 is the same criterion for Geman-McClure.
 TUNING = {"tukey": 4.6851, "geman_mcclure": 3.7874, "cauchy": 2.3849}
-
-#: Each parameter's monomial u^a v^b, as (a, b), in the x and y components of U (None: absent).
-#: Quadratic is the 8-parameter pseudo-perspective model of Odobez & Bouthemy:
-#: U = a0 + a1 u + a2 v + q1 u^2 + q2 uv,  V = a3 + a4 u + a5 v + q1 uv + q2 v^2.
-_TERMS = {
-    "translation": (((0, 0), None), (None, (0, 0))),
-    "affine": (
-        ((0, 0), None), ((1, 0), None), ((0, 1), None),
-        (None, (0, 0)), (None, (1, 0)), (None, (0, 1)),
-    ),
-}
-_TERMS["quadratic"] = _TERMS["affine"] + (((2, 0), (1, 1)), ((1, 1), (0, 2)))
-
-
-@dataclass(frozen=True)
-class MotionFit:
-    """The dominant motion from frame k-1 to frame k (arrays are read-only).
-
-    A position x of frame k-1 moves to x + U(x) in frame k, U(x) = P(x) theta.
-    model: 'translation' (p=2) | 'affine' (p=6) | 'quadratic' (p=8).
-    theta: (p,) float64, px. theta_cov: (p, p) float64, px^2, from the final
-    weighted least squares (independent residuals assumed; see ``state_noise``).
-    origin: (2,) px and length: px, the normalisation of P(x) (module docstring).
-    weights: (H, W) float32 in [0, 1], final robust weight of each pixel of frame
-    k-1 (0 where x + U(x) leaves frame k). scale: robust scale of the final
-    residuals I_k(x + U(x)) - I_{k-1}(x), 1.4826 MAD, grey levels.
-    """
-
-    model: str
-    theta: np.ndarray
-    theta_cov: np.ndarray
-    origin: np.ndarray
-    length: float
-    weights: np.ndarray
-    scale: float
-
-
-def n_parameters(model: str) -> int:
-    """p, the number of parameters of ``model``."""
-    return len(_TERMS[model])
-
-
-def motion_basis(model: str, xy: np.ndarray, origin: np.ndarray, length: float) -> np.ndarray:
-    """P(x) of paper §5.1: (N, 2, p) float64 at (N, 2) positions xy (px)."""
-    u, v = ((np.asarray(xy, np.float64) - origin) / length).T
-    basis = np.zeros((len(u), 2, n_parameters(model)))
-    for j, monomials in enumerate(_TERMS[model]):
-        for component, exponents in enumerate(monomials):
-            if exponents is not None:
-                basis[:, component, j] = u ** exponents[0] * v ** exponents[1]
-    return basis
-
-
-def displacement(fit: MotionFit, xy: np.ndarray) -> np.ndarray:
-    """U(x) = P(x) theta: (N, 2) px at (N, 2) positions xy of frame k-1."""
-    return motion_basis(fit.model, xy, fit.origin, fit.length) @ fit.theta
-
-
-def jacobian(fit: MotionFit, xy: np.ndarray) -> np.ndarray:
-    """d(x + U(x))/dx: (N, 2, 2) at (N, 2) positions xy (px).
-
-    This is A_k of eq. (1), the same at every point for translation and affine
-    (then b_k = x + U(x) - A_k x, any x); for quadratic it is the linearisation
-    of the dynamics at each point.
-    """
-    u, v = ((np.asarray(xy, np.float64) - fit.origin) / fit.length).T
-    jac = np.zeros((len(u), 2, 2))
-    jac[:, 0, 0] = jac[:, 1, 1] = 1.0
-    for theta_j, monomials in zip(fit.theta, _TERMS[fit.model]):
-        for component, exponents in enumerate(monomials):
-            if exponents is None:
-                continue
-            a, b = exponents
-            if a:
-                jac[:, component, 0] += theta_j * a * u ** (a - 1) * v**b / fit.length
-            if b:
-                jac[:, component, 1] += theta_j * b * u**a * v ** (b - 1) / fit.length
-    return jac
-
-
-def neighbourhood_support(fit: MotionFit, xy: np.ndarray, window: int) -> np.ndarray:
-    """(N,) mean robust weight of the dominant-motion fit over a ``window`` x ``window`` square at each of (N, 2) xy.
-
-    Near 1 where the neighbourhood follows the dominant motion, near 0 where it
-    does not (another object, parallax, an occluder). Positions are rounded to
-    the nearest pixel and clamped to the frame.
-    """
-    mean = cv2.boxFilter(fit.weights, -1, (window, window), borderType=cv2.BORDER_REFLECT)
-    h, w = mean.shape
-    cols = np.clip(np.rint(xy[:, 0]), 0, w - 1).astype(int)
-    rows = np.clip(np.rint(xy[:, 1]), 0, h - 1).astype(int)
-    return mean[rows, cols].astype(np.float64)
-
-
-def state_noise(
-    fit: MotionFit, xy: np.ndarray, q_floor: float, q_misfit: float = 0.0, misfit_window: int = 15
-) -> np.ndarray:
-    """Q_k at (N, 2) positions: (N, 2, 2) px^2.
-
-    Q_k = P(x) Sigma_theta P(x)^T + (q_floor + q_misfit (1 - w(x))^2) I, with
-    w(x) the mean robust weight around x (``neighbourhood_support``).
-
-    The paper only says Q_k is estimated from the images. Our choice has three
-    parts: the uncertainty of the fitted motion propagated to the point; a floor
-    for what any parametric model leaves out; and a model-misfit term read off
-    the robust fit itself: where the neighbourhood of x was rejected as outliers
-    the dominant motion says little about x, so the point may move by up to a
-    few pixels more (``python -m condtrack_cli.evaluate.bench --support SEQUENCE``
-    on the real sequences of ../shared/data: one-step prediction error median
-    about 10 px where the support is below 0.4, 0.45-1.1 px where it is >= 0.8).
-    The weighted-least-squares Sigma_theta treats pixels as independent, so it is
-    tiny on textured frames; it grows where the fit is poorly constrained.
-    """
-    basis = motion_basis(fit.model, xy, fit.origin, fit.length)
-    isotropic = q_floor + (q_misfit * (1 - neighbourhood_support(fit, xy, misfit_window)) ** 2 if q_misfit else 0.0)
-    return basis @ fit.theta_cov @ basis.transpose(0, 2, 1) + np.multiply.outer(isotropic, np.eye(2))
 
 
 def robust_weights(cost: str, residual: np.ndarray, scale: float) -> np.ndarray:
@@ -251,53 +131,6 @@ def robust_scale(residual: np.ndarray, floor: float) -> float:
         return floor
     mad = np.median(np.abs(residual - np.median(residual)))
     return max(MAD_TO_SIGMA * float(mad), floor)
-
-
-@dataclass(frozen=True)
-class Pyramid:
-    """A frame's Gaussian pyramid with its gradients.
-
-    base: (H, W) float32, the frame smoothed by a Gaussian of std PRESMOOTH_SIGMA
-    px (level 0). levels: finest first, (h_l, w_l, 3) float32 [I, dI/dx, dI/dy]
-    in grey levels and grey per pixel of that level (3x3 Sobel / 8).
-    """
-
-    base: np.ndarray
-    levels: list[np.ndarray]
-
-
-def build_pyramid(gray: np.ndarray, levels: int) -> Pyramid:
-    """Gaussian pyramid (``cv2.pyrDown``) of a (H, W) frame, with gradients, ``levels`` deep."""
-    return deepen(Pyramid(cv2.GaussianBlur(np.asarray(gray, np.float32), (0, 0), PRESMOOTH_SIGMA), []), levels)
-
-
-def deepen(pyramid: Pyramid, levels: int) -> Pyramid:
-    """``pyramid`` with coarser levels appended (``cv2.pyrDown`` of the coarsest image) until ``levels`` deep."""
-    stacks = list(pyramid.levels)
-    image = stacks[-1][:, :, 0] if stacks else pyramid.base
-    for level in range(len(stacks), levels):
-        if level:
-            image = cv2.pyrDown(image)
-        gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3, scale=1 / 8)
-        gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3, scale=1 / 8)
-        stacks.append(cv2.merge((image, gx, gy)))
-    return Pyramid(pyramid.base, stacks)
-
-
-def usable_levels(shape: tuple[int, int], levels: int) -> int:
-    """``levels`` capped so that the coarsest level's shorter side is >= MIN_COARSE_SIDE px."""
-    return min(levels, 1 + max(0, int(np.log2(min(shape) / MIN_COARSE_SIDE))))
-
-
-def frame_pyramid(frame: Frame, levels: int) -> Pyramid:
-    """``build_pyramid`` of ``frame.gray``, cached in ``frame.cache['motion.pyramid']``, ``levels`` deep."""
-    cached = frame.cache.get("motion.pyramid")
-    if cached is None:
-        cached = build_pyramid(frame.gray, levels)
-    elif len(cached.levels) < levels:  # a deeper one asked for later: the cached levels are kept
-        cached = deepen(cached, levels)
-    frame.cache["motion.pyramid"] = cached
-    return Pyramid(cached.base, cached.levels[:levels])
 
 
 def _sample(stack: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -410,35 +243,6 @@ def _robust_start(problem: _LevelProblem, hypotheses: list[np.ndarray], settings
     if hypotheses:
         starts.append(min(hypotheses, key=problem.median_absolute_residual))
     return min((_irls(problem, start, "tukey", settings) for start in starts), key=problem.median_absolute_residual)
-
-
-def warp_maps(model: str, theta: np.ndarray, origin: np.ndarray, length: float,
-              shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-    """x + U(x) on the whole pixel grid of a (H, W) frame: two (H, W) float32 maps (px) for ``cv2.remap``.
-
-    Terms in u only and in v only are summed on a row and a column, then
-    broadcast once; only the quadratic model's uv terms cost full-frame passes.
-    """
-    height, width = shape
-    u = (np.arange(width) - origin[0]) / length
-    v = (np.arange(height) - origin[1]) / length
-    maps = []
-    for component in (0, 1):
-        along_row = np.arange(width, dtype=np.float64) if component == 0 else np.zeros(width)
-        along_column = np.arange(height, dtype=np.float64) if component == 1 else np.zeros(height)
-        cross = []
-        for theta_j, monomials in zip(theta, _TERMS[model]):
-            if monomials[component] is None:
-                continue
-            a, b = monomials[component]
-            if b == 0:
-                along_row += theta_j * u**a
-            elif a == 0:
-                along_column += theta_j * v**b
-            else:
-                cross.append(np.float32(theta_j) * np.outer(v**b, u**a).astype(np.float32))
-        maps.append(sum(cross, along_row.astype(np.float32)[None, :] + along_column.astype(np.float32)[:, None]))
-    return maps[0], maps[1]
 
 
 def pixel_weights(prev_gray: np.ndarray, cur_gray: np.ndarray, model: str, theta: np.ndarray,

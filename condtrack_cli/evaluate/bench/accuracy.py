@@ -78,7 +78,9 @@ def support_table(folder: Path, window: int = 32) -> list[str]:
     measurement behind ``auto``'s thresholds and the misfit term of Q_k.
     """
     from condtrack_cli.frames.readers import FrameSettings, open_frames
-    from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings, displacement, neighbourhood_support
+    from condtrack_cli.motion.model import displacement
+    from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings
+    from condtrack_cli.motion.state_noise import neighbourhood_support
     from condtrack_cli.types import Frame
 
     truth = load_gt_csv(folder / "tracks.csv")

@@ -102,7 +102,7 @@ def speed_table(work: Path, shared: Path, repeats: int = 3) -> list[str]:
 #: the stages are disjoint (none calls another).
 PROFILE_STAGES = (
     ("frame decoding (cv2.imread)", "~", "<imread>"),
-    ("pyramids and gradients (robust.build_pyramid)", "motion/robust.py", "build_pyramid"),
+    ("pyramids and gradients (pyramid.deepen)", "motion/pyramid.py", "deepen"),
     ("global robust motion (robust.estimate_from_pyramids)", "motion/robust.py", "estimate_from_pyramids"),
     ("local robust motion (local.local_field)", "motion/local.py", "local_field"),
     ("SSD measurement (ssd.measure)", "measure/ssd.py", "measure"),
