@@ -1,5 +1,9 @@
 """Robust parametric motion between two frames, local support (paper §5.1, eq. 5).
 
+Why one long module: it is one algorithm, the shared local field, whose layout, level,
+workspace and system types are private to it, and its exact per-window reference that
+the tests compare it with; split, the parts would only ever be read together.
+
 The CNLF moves each particle x_{k-1}^(i) by the motion of a window R (side
 ``local_window``, 32 px by default) centred on it:
 p(x_k | x_{k-1}) = N(x_{k-1} + U(x_{k-1}), Q_k(x_{k-1})) (eq. 5). This module
