@@ -39,7 +39,7 @@ from condtrack_cli.filters.clf import build_stage
 from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, sample_gauss2
 from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMatcher
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise
-from condtrack_cli.filters.smoother import TransitionLog, error_excess, particle_smoother
+from condtrack_cli.filters.smoother import TransitionLog, error_excess, particle_smoother, weighted_moments
 from condtrack_cli.motion.local import LocalMotion
 from condtrack_cli.motion.model import displacement
 from condtrack_cli.motion.robust import GlobalMotion
@@ -168,12 +168,7 @@ class CNLFTracker(Tracker):
 
     def _report(self, index: np.ndarray) -> None:
         """xy and cov of points ``index``: the weighted mean and covariance of the current particles."""
-        w = np.exp(self.log_w[index])[..., None]  # (n, N, 1)
-        x = self.particles[index]
-        mean = (w * x).sum(axis=1)
-        d = x - mean[:, None]
-        self.xy[index] = mean
-        self.cov[index] = np.einsum("pn,pni,pnj->pij", w[..., 0], d, d)
+        self.xy[index], self.cov[index] = weighted_moments(self.particles[index], self.log_w[index])
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
         x_prev = self.xy[index].copy()

@@ -8,7 +8,7 @@ recorded, batched over points (arrays (P, F, ...); the only loop is over frames)
   are x_k = A_k x_{k-1} + b_k + w_k (paper eq. 1), A_k per point (the Jacobian
   of the motion at the point); the filter records, per frame, the predicted
   mean x_{k|k-1}, covariance Sigma_{k|k-1} and the A_k it used
-  (:class:`GaussianTransitions`). Backwards from the last frame:
+  (:class:`TransitionLog`). Backwards from the last frame:
   G_k = Sigma_{k|k} A_{k+1}^T Sigma_{k+1|k}^-1,
   x_{k|F} = x_{k|k} + G_k (x_{k+1|F} - x_{k+1|k}),
   Sigma_{k|F} = Sigma_{k|k} + G_k (Sigma_{k+1|F} - Sigma_{k+1|k}) G_k^T.
@@ -37,7 +37,6 @@ frame k-1 keeps its filtered estimate as the last frame of its segment.
 from __future__ import annotations
 
 import numpy as np
-
 from scipy.special import logsumexp
 
 from condtrack_cli.filters.gauss2 import inverse2
@@ -146,6 +145,6 @@ def transition_log_density(x_next: np.ndarray, mu: np.ndarray, Q: np.ndarray) ->
 def weighted_moments(particles: np.ndarray, log_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean (..., 2) and covariance (..., 2, 2) of particles (..., N, 2) with normalised log-weights (..., N)."""
     w = np.exp(log_w)
-    mean = np.einsum("...n,...ni->...i", w, particles)
+    mean = (w[..., None] * particles).sum(axis=-2)
     d = particles - mean[..., None, :]
     return mean, np.einsum("...n,...ni,...nj->...ij", w, d, d)
