@@ -9,6 +9,7 @@ from condtrack_cli import pipeline
 from condtrack_cli.config import load_config
 from condtrack_cli.evaluate.score import score_tracks
 from condtrack_cli.filters import kalman
+from condtrack_cli.filters.auto import lost_on_local
 from condtrack_cli.filters.cnlf import CNLFSettings, propagate, resample
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise
 from condtrack_cli.registry import method_code
@@ -144,3 +145,20 @@ def test_cnlf_is_deterministic_per_seed(ring_runs):
     again = pipeline.run(source, source.info, load_config(None, method="cnlf"), queries, seed=3)
     assert again.xy.tobytes() == runs["cnlf"][0].xy.tobytes()
     assert again.cov.tobytes() == runs["cnlf"][0].cov.tobytes()
+
+
+def test_a_lost_point_whose_measurements_followed_the_local_motion_keeps_it():
+    """Rule 4 (filters/auto.py) on three lost points, all with the dominant prediction closer to x + v.
+
+    0: its measurements favoured the local motion (mean evidence 2 > 0.5): it keeps the local motion, as a
+    point on parallax accelerating away from its last step must. 1: both motions predicted it alike (mean
+    evidence 0.1), as a background point before it is covered: the dominant motion. 2: the local prediction
+    continues its last step: the local motion whatever the evidence.
+    """
+    x = np.zeros((3, 2))
+    velocity = np.array([[20.0, 0.0], [0.0, 0.0], [5.0, 0.0]])
+    dominant = np.array([[19.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    local = np.array([[28.0, 0.0], [6.0, 0.0], [5.0, 0.0]])
+    spread = np.broadcast_to(np.eye(2), (3, 2, 2))
+    on_local = lost_on_local(x, velocity, spread, dominant, local, np.array([2.0, 0.1, -3.0]), 0.5)
+    assert on_local.tolist() == [True, False, True]

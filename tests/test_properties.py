@@ -42,7 +42,8 @@ config_values = st.one_of(st.integers(-2, 40), st.floats(allow_nan=True, allow_i
                           st.text(string.ascii_letters, max_size=4), st.booleans(), st.none())
 config_keys = st.sampled_from([
     "filter.stk.win_size", "filter.stk.levels", "filter.stk.fb_threshold", "motion.levels", "detect.block",
-    "detect.max_points", "filter.auto.integration_frames", "filter.auto.evidence_margin", "output.hdf5_compression",
+    "detect.max_points", "filter.auto.integration_frames", "filter.auto.evidence_margin", "filter.auto.lost_evidence",
+    "output.hdf5_compression",
     "measure.template", "filter.nope", "nowhere.key",
 ])
 
