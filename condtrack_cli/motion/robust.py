@@ -96,6 +96,9 @@ class RobustMotionSettings(StageSettings):
     )
     misfit_window: int = Field(15, ge=3, description="side of the neighbourhood whose robust weights scale q_misfit (px)")
     local_window: int = Field(32, ge=8, description="side of the local support window (px)")
+    local_search: int = Field(
+        64, ge=0, description="the local field's coarsest level block-matches each window this far from the global motion (px; 0: none)"
+    )
 
 
 #: Weak prior std of each parameter (px); see the module docstring.
