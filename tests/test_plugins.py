@@ -23,7 +23,7 @@ SAMPLE = SAMPLES / "ring"
 #: A filter package that condtrack does not know: every point stays at its query position.
 HOLD_PACKAGE = '''
     import numpy as np
-    from condtrack_cli.config import StageSettings
+    from condtrack_cli.settings import StageSettings
     from condtrack_cli.filters.base import Tracker
     from condtrack_cli.registry import register
 

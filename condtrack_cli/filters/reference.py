@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli.config import StageSettings
 from condtrack_cli.filters import kalman
+from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import Frame
 
 

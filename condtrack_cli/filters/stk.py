@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli.config import StageSettings
 from condtrack_cli.filters.base import Tracker
 from condtrack_cli.registry import register
+from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import Frame, Queries, SequenceInfo
 
 

@@ -61,11 +61,11 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli.config import StageSettings
 from condtrack_cli.motion._blocks import block_displacements, block_hypotheses
 from condtrack_cli.motion.model import MotionFit, motion_basis, warp_maps
 from condtrack_cli.motion.pyramid import Pyramid, build_pyramid, frame_pyramid, usable_levels
 from condtrack_cli.registry import register
+from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import Frame
 
 
