@@ -40,7 +40,7 @@ HOLD_PACKAGE = '''
         def _start(self, index, frame):
             self.cov[index] = self.variance * np.eye(2)
 
-        def _advance(self, index, prev, frame):
+        def _advance(self, index, prev, frame, motion):
             """Positions, covariances and visibility stay as they are."""
 
     @register("filter", "hold", HoldSettings, "every point stays at its query position")

@@ -251,6 +251,7 @@ class SSDMeasure:
 
     def __init__(self, settings: SSDSettings):
         self.settings = settings
+        self.template_side = settings.template  #: side t of the reference patches (px)
 
     def templates(self, gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """(M, t, t) float32 reference patches around (M, 2) positions of a (H, W) float32 frame."""
