@@ -1,7 +1,8 @@
-"""The per-frame pipeline: frames -> (detection) -> motion -> filter -> tracks; the one place that reads the Config.
+"""The per-frame pipeline: frames -> (detection) -> motion -> filter -> tracks; the stages built from the Config.
 
-``build_tracker`` builds the configured stages (measurement, motion) and hands
-the filter's factory those objects and plain values (``filters/interface.py``);
+This module is where the Config becomes stages (``api.py`` opens the frames):
+``build_tracker`` builds the configured measurement stage and hands the filter's
+factory it, the motion stage's Q_k and plain values (``filters/interface.py``);
 no stage reads the config or another stage's settings. Per frame pair k-1 -> k
 the pipeline estimates the motion the filter asks for (the global fit, and the
 local field only when ``tracker.needs_local_motion``) and passes it to
