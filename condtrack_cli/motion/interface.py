@@ -1,10 +1,11 @@
 """Contract of a ``motion`` stage: two consecutive frames in, their motion out (paper §5.1).
 
 A motion stage is registered with ``register("motion", name, SettingsModel)`` on a
-factory called ``factory(settings) -> MotionStages``. The pipeline calls, once per
-frame pair k-1 -> k, the global estimator, then the local one with the global fit
-when the filter needs it (``Tracker.needs_local_motion``), and hands the filter the
-result as a :class:`FrameMotion`. Positions are px of frame k-1 in the package's
+factory called ``factory(settings) -> MotionStages``. For a filter that needs
+motion (``Tracker.needs_motion``) the pipeline calls, once per frame pair k-1 -> k
+with a point started before k, the global estimator, then the local one on the
+global fit when the filter needs it too (``Tracker.needs_local_motion``), and
+hands the filter the result as a :class:`FrameMotion`. Positions are px of frame k-1 in the package's
 pixel convention (x right, y down, (0, 0) the centre of the top-left pixel).
 """
 
