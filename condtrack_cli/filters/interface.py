@@ -30,7 +30,7 @@ from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tra
 class Tracker(Protocol):
     """A filter tracking P points through one pass."""
 
-    method: str  #: the method whose code (``registry.method_code``) its rows carry; a router's rows carry its members''
+    method: str  #: the method whose code (``registry.method_code``) its rows carry; a router's rows carry its members' codes
     smoother: str  #: name of the two-way smoother ``smooth`` runs ("" when the filter has none)
     needs_motion: bool  #: ``step`` wants the global fit of each frame pair
     needs_local_motion: bool  #: ``step`` wants the local field of each frame pair too
