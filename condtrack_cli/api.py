@@ -20,10 +20,11 @@ import numpy as np
 import yaml
 
 from condtrack_cli import pipeline, registry, types
-from condtrack_cli.config import Config, OutputSettings, load_config, resolve
+from condtrack_cli.config import Config, load_config, resolve
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io import read as io_read
 from condtrack_cli.io.formats import track_format
+from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.io.write import write_tracks
 from condtrack_cli.hashes import config_hash, queries_hash
 from condtrack_cli.progress import Progress

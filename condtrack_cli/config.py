@@ -17,34 +17,15 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, Literal, Mapping
+from typing import Any, Literal, Mapping
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, Field, ValidationError
 
 from condtrack_cli import registry
 from condtrack_cli.errors import CondtrackError, read_error
-
-
-class StageSettings(BaseModel):
-    """Base of every stage's settings: frozen, strict types, unknown keys refused.
-
-    ``frame_windows`` names the fields that are window sides in pixels and must
-    fit in the frame; :meth:`Config.check_fits_frame` checks them once the frame
-    size is known.
-    """
-
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
-    frame_windows: ClassVar[tuple[str, ...]] = ()
-
-
-class OutputSettings(StageSettings):
-    """Settings of the CSV and HDF5 writers."""
-
-    hdf5_compression: int = Field(4, ge=0, le=9, description="gzip level of HDF5 datasets (0 = none)")
-    store_measurements: bool = Field(True, description="write /measurements/z and /measurements/R to HDF5")
-    store_particles: bool = Field(False, description="write the CNLF's particles to HDF5 (/particles/xy; large)")
-    store_segmentation: bool = Field(False, description="write the motion segmentation maps of auto to HDF5 (/segmentation)")
+from condtrack_cli.io.interface import OutputSettings
+from condtrack_cli.settings import StageSettings
 
 
 #: Stage kinds whose section is ``name:`` plus that implementation's parameters.

@@ -1,8 +1,14 @@
-"""The per-frame pipeline: frames -> (detection) -> filter -> tracks.
+"""The per-frame pipeline: frames -> (detection) -> motion -> filter -> tracks; the stages built from the Config.
 
-The filter composes the motion and measurement stages it needs; the pipeline
-streams frames, keeps only the previous and the current one, and hands each
-frame's report to an optional ``on_frame`` callback (progress display).
+This module is where the Config becomes stages (``api.py`` opens the frames):
+``build_tracker`` builds the configured measurement stage and hands the filter's
+factory it, the motion stage's Q_k and plain values (``filters/interface.py``);
+no stage reads the config or another stage's settings. Per frame pair k-1 -> k
+the pipeline estimates the motion the filter asks for (the global fit, and the
+local field only when ``tracker.needs_local_motion``) and passes it to
+``tracker.step(frame, prev, motion)``. It streams frames, keeps only the
+previous and the current one (each carries its pyramid, built once), and hands
+each frame's report to an optional ``on_frame`` callback (progress display).
 
 A point queried at frame k > 0 is tracked forward from k and backward from k:
 the backward pass runs the same filter on the time-reversed frames k_max .. 0
@@ -24,8 +30,16 @@ import numpy as np
 from condtrack_cli import registry
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
+from condtrack_cli.filters.interface import Tracker
+from condtrack_cli.motion.interface import FrameMotion, MotionStages
 from condtrack_cli.queries import detected_queries
 from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tracks
+
+
+def build_stage(config: Config, kind: str):
+    """The configured stage of ``kind`` ('motion', 'measure'), built from its settings alone."""
+    stage = config.stage(kind)
+    return registry.get(kind, stage.name).factory(stage.settings)
 
 
 def detect_queries(config: Config, first: Frame) -> Queries:
@@ -33,6 +47,23 @@ def detect_queries(config: Config, first: Frame) -> Queries:
     stage = config.stage("detect")
     xy = registry.get("detect", stage.name).factory(stage.settings, first.gray)
     return detected_queries(xy)
+
+
+def build_tracker(config: Config, queries: Queries, info: SequenceInfo, rng: np.random.Generator,
+                  motion: MotionStages) -> Tracker:
+    """The configured filter (``config.method``), its factory handed every keyword of ``filters/interface.py``."""
+    return registry.get("filter", config.method).factory(
+        config.filters[config.method], queries=queries, info=info, rng=rng,
+        measure=build_stage(config, "measure"), gamma=config.stage("measure").settings.gamma,
+        state_noise=motion.state_noise, smooth=config.smooth, store_particles=config.output.store_particles,
+        store_segmentation=config.output.store_segmentation, filter_settings=config.filters,
+    )
+
+
+def frame_motion(motion: MotionStages, prev: Frame, frame: Frame, local: bool) -> FrameMotion:
+    """The motion from ``prev`` to ``frame``: the global fit, and the local field on it when ``local``."""
+    fit = motion.global_motion.fit(prev, frame)
+    return FrameMotion(fit, motion.local_motion.field(prev, frame, fit) if local else None)
 
 
 def run(
@@ -87,8 +118,12 @@ def run_pass(
     seed: int,
     on_frame: Callable[[int, FrameEstimate], None] | None,
 ) -> Tracks:
-    """One pass of ``config.method`` through ``frames`` (frame i of the iterable is frame i of the pass)."""
-    spec = registry.get("filter", config.method)
+    """One pass of ``config.method`` through ``frames`` (frame i of the iterable is frame i of the pass).
+
+    The motion of a frame pair is estimated when the tracker needs it and a point
+    was started before the pair's second frame.
+    """
+    motion = build_stage(config, "motion")
     tracker = None
     history: list[FrameEstimate] = []
     prev: Frame | None = None
@@ -99,13 +134,12 @@ def run_pass(
                 queries = detect_queries(config, frame)
                 if not len(queries):
                     raise CondtrackError(f"{info.input}: no trackable point detected on frame 0")
-            tracker = spec.factory(
-                config.filters[config.method], queries=queries, info=info, config=config,
-                rng=np.random.default_rng(seed),
-            )
+            tracker = build_tracker(config, queries, info, np.random.default_rng(seed), motion)
             if config.smooth and not tracker.smoother:
                 raise CondtrackError(f"config key 'filter.smooth': method {config.method!r} has no smoother")
-        history.append(tracker.step(frame, prev))
+        moved = prev is not None and tracker.needs_motion and bool((queries.frame < index).any())
+        pair_motion = frame_motion(motion, prev, frame, tracker.needs_local_motion) if moved else None
+        history.append(tracker.step(frame, prev, pair_motion))
         if on_frame is not None:
             on_frame(index, history[-1])
         prev = frame

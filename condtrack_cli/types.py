@@ -10,8 +10,13 @@ Shapes use P = points, F = frames, N = particles.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from condtrack_cli.motion.pyramid import Pyramid
 
 
 @dataclass(frozen=True)
@@ -50,20 +55,19 @@ class Frame:
     """One frame as stages see it.
 
     index: position in the sequence (0-based); image: (H, W) uint8 grey.
-    ``cache`` lets stages share derived arrays (pyramids, gradients) computed
-    once per frame; keys are owned by the stage that writes them.
+    pyramid: the frame's Gaussian pyramid with gradients, None until a motion
+    estimate builds it (``motion.pyramid.frame_pyramid``); kept with the frame
+    so that the pairs k-1 -> k and k -> k+1 build it once.
     """
 
     index: int
     image: np.ndarray
-    cache: dict = field(default_factory=dict)
+    pyramid: Pyramid | None = None
 
-    @property
+    @cached_property
     def gray(self) -> np.ndarray:
         """(H, W) float32 grey levels in [0, 255]."""
-        if "gray" not in self.cache:
-            self.cache["gray"] = self.image.astype(np.float32)
-        return self.cache["gray"]
+        return self.image.astype(np.float32)
 
 
 @dataclass(frozen=True)

@@ -119,7 +119,7 @@ def test_third_party_stage_registers_through_entry_points(tmp_path, monkeypatch)
     package = tmp_path / "thirdparty_detect.py"
     package.write_text(textwrap.dedent('''
         import numpy as np
-        from condtrack_cli.config import StageSettings
+        from condtrack_cli.settings import StageSettings
         from condtrack_cli.registry import register
 
         class GridSettings(StageSettings):

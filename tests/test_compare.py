@@ -14,9 +14,9 @@ import pytest
 from click.testing import CliRunner
 
 from condtrack_cli.cli import cli
-from condtrack_cli.config import OutputSettings
-from condtrack_cli.io.compare import CSV_FIELDS, HDF5_FIELDS, compare_tracks
 from condtrack_cli.cli.compare import compare_command
+from condtrack_cli.io.compare import CSV_FIELDS, HDF5_FIELDS, compare_tracks
+from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.io.read import read_tracks
 from condtrack_cli.io.write import write_tracks
 from condtrack_cli.types import Queries, SequenceInfo, Tracks

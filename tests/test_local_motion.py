@@ -29,7 +29,7 @@ from scipy.optimize import least_squares
 
 from condtrack_cli.frames.synthetic import make_scene
 from condtrack_cli.motion.local import LocalField, LocalMotion, exact_local_motion
-from condtrack_cli.motion.robust import RobustMotionSettings
+from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings
 from condtrack_cli.types import Frame
 
 from conftest import load_asset, render_pair
@@ -69,7 +69,10 @@ def warped_pair(field, photo: str, noise: float = 1.0, seed: int = 0) -> tuple[n
 
 
 def field_of(prev: np.ndarray, cur: np.ndarray, settings: RobustMotionSettings) -> LocalField:
-    return LocalMotion(settings).field(Frame(0, prev.astype(np.uint8)), Frame(1, cur.astype(np.uint8)))
+    """The stage's field on its own global fit, as the pipeline computes it."""
+    prev_frame, cur_frame = Frame(0, prev.astype(np.uint8)), Frame(1, cur.astype(np.uint8))
+    fit = GlobalMotion(settings).fit(prev_frame, cur_frame)
+    return LocalMotion(settings).field(prev_frame, cur_frame, fit)
 
 
 def rms(error: np.ndarray) -> float:
@@ -300,20 +303,18 @@ def test_state_noise_is_positive_definite_and_grows_without_texture():
 # --------------------------------------------------------------------------- stage
 
 
-def test_field_is_cached_deterministic_and_read_only():
+def test_field_is_deterministic_and_read_only():
     prev_gray, cur_gray = warped_pair(translation_field, "astronaut.png")
     settings = RobustMotionSettings()
     prev, cur = Frame(0, prev_gray.astype(np.uint8)), Frame(1, cur_gray.astype(np.uint8))
     stage = LocalMotion(settings)
-    local = stage.field(prev, cur)
-    assert cur.cache["motion.local"] is local and stage.field(prev, cur) is local
-    assert LocalMotion(settings).field(prev, cur) is local  # keyed by previous frame and settings
-    assert "motion.global" in cur.cache  # the global fit it builds on is shared too
-    again = field_of(prev_gray, cur_gray, settings)
+    local = stage.field(prev, cur, GlobalMotion(settings).fit(prev, cur))
+    again = field_of(prev_gray, cur_gray, settings)  # fresh frames, a fresh stage
     np.testing.assert_array_equal(again.flow, local.flow)  # deterministic, bit for bit
     np.testing.assert_array_equal(again.cov, local.cov)
-    other = LocalMotion(RobustMotionSettings(local_window=24)).field(prev, cur)
-    assert other is not local and cur.cache["motion.local"] is other
+    reused = stage.field(prev, cur, GlobalMotion(settings).fit(prev, cur))  # the stage's work arrays and pyramids reused
+    np.testing.assert_array_equal(reused.flow, local.flow)
+    np.testing.assert_array_equal(reused.cov, local.cov)
     with pytest.raises(ValueError):
         local.flow[0, 0, 0] = 1.0
 

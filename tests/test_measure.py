@@ -11,9 +11,10 @@ from conftest import load_asset
 from pydantic import ValidationError
 
 from condtrack_cli import registry
+from condtrack_cli.measure.interface import Measurement
 from condtrack_cli.measure.noise import estimate_noise_sigma
 from condtrack_cli.measure.response import response_covariance, unit_sum_c, within_2px
-from condtrack_cli.measure.ssd import Measurement, SSDMeasure, SSDSettings, measure
+from condtrack_cli.measure.ssd import SSDMeasure, SSDSettings, measure
 from condtrack_cli.measure.surfaces import extract_templates, matching_cost
 
 SIGMA = 3.0  # acquisition noise std of the synthetic surfaces (grey levels)

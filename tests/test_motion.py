@@ -16,7 +16,9 @@ import pytest
 
 from condtrack_cli import registry
 from condtrack_cli.motion._blocks import block_displacements, block_hypotheses
+from condtrack_cli.motion.local import LocalMotion
 from condtrack_cli.motion.model import MotionFit, displacement, jacobian, motion_basis
+from condtrack_cli.motion.pyramid import build_pyramid, frame_pyramid
 from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings, estimate_motion
 from condtrack_cli.motion.state_noise import state_noise
 from condtrack_cli.types import Frame
@@ -231,22 +233,37 @@ def test_textureless_frames_give_no_motion_and_a_wide_covariance():
     assert smallest > 100, f"an unconstrained fit must say so: Q_k eigenvalue {smallest:.1f} px^2 <= 100"
 
 
-def test_stage_caches_the_fit_and_pyramids_and_matches_the_function(affine_frames):
-    stage = registry.get("motion", "robust").factory(RobustMotionSettings())
-    assert isinstance(stage, GlobalMotion)
+def test_stage_keeps_the_pyramids_with_the_frames_and_matches_the_function(affine_frames):
+    stages = registry.get("motion", "robust").factory(RobustMotionSettings())
+    assert isinstance(stages.global_motion, GlobalMotion) and isinstance(stages.local_motion, LocalMotion)
     prev_gray, cur_gray = affine_frames
     prev = Frame(0, prev_gray.astype(np.uint8))
     cur = Frame(1, cur_gray.astype(np.uint8))
-    fit = stage.fit(prev, cur)
-    assert cur.cache["motion.global"] is fit and stage.fit(prev, cur) is fit
-    assert "motion.pyramid" in prev.cache and "motion.pyramid" in cur.cache
+    fit = stages.global_motion.fit(prev, cur)
+    built = prev.pyramid, cur.pyramid
+    assert built[0] is not None and built[1] is not None
+    again = stages.global_motion.fit(prev, cur)
+    assert (prev.pyramid, cur.pyramid) == built  # not rebuilt: the same objects
     direct = estimate_motion(prev_gray, cur_gray, RobustMotionSettings())
-    np.testing.assert_array_equal(fit.theta, direct.theta)  # deterministic, bit for bit
-    np.testing.assert_array_equal(fit.weights, direct.weights)
+    for estimate in (again, direct):  # deterministic, bit for bit
+        np.testing.assert_array_equal(fit.theta, estimate.theta)
+        np.testing.assert_array_equal(fit.weights, estimate.weights)
     other = GlobalMotion(RobustMotionSettings(model="translation")).fit(prev, cur)
-    assert other.model == "translation" and cur.cache["motion.global"] is other
+    assert other.model == "translation"
     with pytest.raises(ValueError):
-        fit.theta[0] = 1.0  # cached arrays are shared, hence read-only
+        fit.theta[0] = 1.0  # the fit is handed to several filters, hence read-only
+
+
+def test_a_pyramid_deepened_later_equals_one_built_deep(affine_frames):
+    """The global fit builds a frame's pyramid, the local field (deeper) extends it: same levels as built at once."""
+    frame = Frame(0, affine_frames[0].astype(np.uint8))
+    shallow = frame_pyramid(frame, 2)
+    assert len(shallow.levels) == 2 and len(frame.pyramid.levels) == 2
+    deep = frame_pyramid(frame, 4)
+    assert deep.levels[0] is shallow.levels[0]  # the levels already built are kept
+    for kept, built in zip(deep.levels, build_pyramid(frame.gray, 4).levels, strict=True):
+        np.testing.assert_array_equal(kept, built)
+    assert len(frame_pyramid(frame, 3).levels) == 3 and len(frame.pyramid.levels) == 4
 
 
 def test_frames_of_different_shapes_are_refused(affine_frames):

@@ -23,7 +23,7 @@ SAMPLE = SAMPLES / "ring"
 #: A filter package that condtrack does not know: every point stays at its query position.
 HOLD_PACKAGE = '''
     import numpy as np
-    from condtrack_cli.config import StageSettings
+    from condtrack_cli.settings import StageSettings
     from condtrack_cli.filters.base import Tracker
     from condtrack_cli.registry import register
 
@@ -40,7 +40,7 @@ HOLD_PACKAGE = '''
         def _start(self, index, frame):
             self.cov[index] = self.variance * np.eye(2)
 
-        def _advance(self, index, prev, frame):
+        def _advance(self, index, prev, frame, motion):
             """Positions, covariances and visibility stay as they are."""
 
     @register("filter", "hold", HoldSettings, "every point stays at its query position")

@@ -10,14 +10,14 @@ import pytest
 from click.testing import CliRunner
 
 from condtrack_cli import SCHEMA_VERSION
-from condtrack_cli.config import OutputSettings
-from condtrack_cli.errors import CondtrackError
-from condtrack_cli.frames.readers import FrameSettings, open_frames
 from condtrack_cli import render
-from condtrack_cli.render import ellipse_axes, render_contact_sheet, render_overlay, sheet_frames
 from condtrack_cli.cli.info import info_command
 from condtrack_cli.cli.render import render_command
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.frames.readers import FrameSettings, open_frames
+from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.io.write import write_tracks
+from condtrack_cli.render import ellipse_axes, render_contact_sheet, render_overlay, sheet_frames
 from condtrack_cli.types import Queries, SequenceInfo, Tracks
 
 WIDTH, HEIGHT, N_FRAMES = 96, 64, 8

@@ -13,8 +13,8 @@ from click.testing import CliRunner
 
 from condtrack_cli import COORDINATES, SCHEMA_VERSION
 from condtrack_cli.cli import cli
-from condtrack_cli.config import OutputSettings
 from condtrack_cli.errors import CondtrackError
+from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.io.read import read_tracks
 from condtrack_cli.io.write import CSV_COLUMNS, FLOAT_FORMATS, write_tracks
 from condtrack_cli.registry import BUILTIN_METHOD_CODES

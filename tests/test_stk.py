@@ -17,7 +17,7 @@ def _run(frames, xy, settings):
     prev, out = None, []
     for k, image in enumerate(frames):
         frame = Frame(k, image)
-        out.append(tracker.step(frame, prev))
+        out.append(tracker.step(frame, prev, None))  # STK estimates its own motion
         prev = frame
     return out
 

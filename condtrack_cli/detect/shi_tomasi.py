@@ -13,8 +13,8 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli.config import StageSettings
 from condtrack_cli.registry import register
+from condtrack_cli.settings import StageSettings
 
 
 class ShiTomasiSettings(StageSettings):

@@ -62,17 +62,21 @@ handover ends a run, so the frame before it keeps its filtered estimate.
 from __future__ import annotations
 
 import dataclasses
+from typing import Mapping
 
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli.config import Config, StageSettings
 from condtrack_cli.filters.base import Tracker
 from condtrack_cli.filters.calibration import ErrorModel
-from condtrack_cli.filters.clf import CLFTracker, build_stage, linear_dynamics
-from condtrack_cli.filters.cnlf import CNLFTracker, inverse2
+from condtrack_cli.filters.clf import CLFSettings, CLFTracker, linear_dynamics
+from condtrack_cli.filters.cnlf import CNLFSettings, CNLFTracker, inverse2
 from condtrack_cli.filters.reference import ReferenceMatcher
+from condtrack_cli.measure.interface import Measurer
+from condtrack_cli.motion.interface import FrameMotion
+from condtrack_cli.motion.state_noise import StateNoise
 from condtrack_cli.registry import method_code, register
+from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tracks
 
 
@@ -112,27 +116,28 @@ class AutoTracker(Tracker):
 
     method = "cnlf"
     smoother = "rts+ffbsm"
+    needs_motion = True
+    needs_local_motion = True
 
-    def __init__(self, settings: AutoSettings, queries: Queries, info: SequenceInfo, config: Config,
-                 rng: np.random.Generator):
+    def __init__(self, settings: AutoSettings, queries: Queries, info: SequenceInfo, clf: CLFTracker,
+                 cnlf: CNLFTracker, errors: ErrorModel, q_floor: float, store_segmentation: bool):
+        """clf, cnlf: the two filters, sharing their reference patches and ``errors``, the reported
+        covariance's model; q_floor: the floor of Q_k (px^2, ``motion.q_floor``) in the common metric of
+        rules 2 and 4; store_segmentation: :meth:`finish` returns the global fit's robust weights."""
         super().__init__(queries, info)
         self.settings = settings
         p = len(queries)
-        reference = ReferenceMatcher(build_stage(config, "measure"), config.filters["clf"], p)
-        self.errors = ErrorModel(p, reference.measure.settings.gamma)
-        self.clf = CLFTracker(config.filters["clf"], queries, info, config, reference, self.errors)
-        self.cnlf = CNLFTracker(config.filters["cnlf"], queries, info, config, rng, reference, self.errors)
-        self.q_floor = config.stage("motion").settings.q_floor
+        self.errors, self.clf, self.cnlf, self.q_floor = errors, clf, cnlf, q_floor
         self.evidence = np.zeros(p)  #: averaged closer_to_local of the point's measurements
         self.evidence_weight = np.zeros(p)  #: sum of the averaging weights given so far (0 before a measurement)
         self.on_cnlf = np.zeros(p, bool)
         self.velocity = np.full((p, 2), np.nan)  #: px/frame, the point's last step that ended with a measurement
-        self.store_segmentation = config.output.store_segmentation
+        self.store_segmentation = store_segmentation
         self.segmentation: list[np.ndarray] = []  #: per frame pair, (H, W) uint8 255 x robust weight
 
-    def step(self, frame: Frame, prev: Frame | None) -> FrameEstimate:
+    def step(self, frame: Frame, prev: Frame | None, motion: FrameMotion | None) -> FrameEstimate:
         self.cnlf.begin_frame()
-        estimate = super().step(frame, prev)
+        estimate = super().step(frame, prev, motion)
         self.cnlf.end_frame()
         return estimate
 
@@ -180,9 +185,8 @@ class AutoTracker(Tracker):
         self.clf.on_local[to_clf] = False
         self.clf.on_local[index[lost & ~want]] = False
 
-    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
-        fit = self.clf.motion.fit(prev, frame)
-        field = self.cnlf.local.field(prev, frame)
+    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion) -> None:
+        fit, field = motion.global_fit, motion.local_field
         if self.store_segmentation:
             self.segmentation.append(np.rint(fit.weights * 255).astype(np.uint8))
         self._route(index, frame, fit, field)
@@ -190,7 +194,7 @@ class AutoTracker(Tracker):
         for tracker, members in ((self.clf, index[~self.on_cnlf[index]]), (self.cnlf, index[self.on_cnlf[index]])):
             tracker.z[members], tracker.R[members] = np.nan, np.nan
             if members.size:
-                tracker._advance(members, prev, frame)
+                tracker._advance(members, prev, frame, motion)
             self._collect(members, tracker)
         self._weigh(index, x_prev, cov_prev, fit, field)
 
@@ -228,6 +232,15 @@ class AutoTracker(Tracker):
 
 @register("filter", "auto", AutoSettings,
           "each point to the CLF or the CNLF by which motion its measurements follow (paper §5.3, revised)")
-def make_auto(settings: AutoSettings, queries: Queries, info: SequenceInfo, config: Config, rng: np.random.Generator,
-              **_context) -> AutoTracker:
-    return AutoTracker(settings, queries, info, config, rng)
+def make_auto(settings: AutoSettings, *, queries: Queries, info: SequenceInfo, rng: np.random.Generator,
+              measure: Measurer, gamma: float, state_noise: StateNoise, smooth: bool, store_particles: bool,
+              store_segmentation: bool, filter_settings: Mapping[str, StageSettings], **_context) -> AutoTracker:
+    """The router over a CLF and a CNLF (``filter.clf``, ``filter.cnlf`` settings) sharing one reference per point."""
+    clf_settings: CLFSettings = filter_settings["clf"]
+    cnlf_settings: CNLFSettings = filter_settings["cnlf"]
+    p = len(queries)
+    reference = ReferenceMatcher(measure, clf_settings, p, gamma)
+    errors = ErrorModel(p, gamma)
+    clf = CLFTracker(clf_settings, queries, info, state_noise, reference, errors, smooth)
+    cnlf = CNLFTracker(cnlf_settings, queries, info, rng, reference, errors, smooth, store_particles)
+    return AutoTracker(settings, queries, info, clf, cnlf, errors, state_noise.q_floor, store_segmentation)

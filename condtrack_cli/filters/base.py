@@ -1,10 +1,10 @@
-"""The tracker contract shared by every filter.
+"""The base class of every filter: the bookkeeping of the contract in ``interface.py``.
 
 A tracker holds the state of all P points as arrays and advances the started
 ones together, frame by frame: ``step`` first advances every point whose query
 frame is before the current frame (``_advance``, one vectorised call on the
-index array of those points), then starts the points queried on this frame
-(``_start``). It reports a :class:`FrameEstimate` for all P points each frame.
+index array of those points, with the frame pair's motion that the pipeline
+hands it), then starts the points queried on this frame (``_start``). It reports a :class:`FrameEstimate` for all P points each frame.
 ``finish`` turns the per-frame reports into :class:`Tracks`; a filter whose
 estimate of past frames changes with later data (the particle filter's path
 estimate) overrides it.
@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from condtrack_cli.motion.interface import FrameMotion
 from condtrack_cli.registry import method_code
 from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tracks
 
@@ -23,6 +24,8 @@ class Tracker:
 
     method: str = ""
     smoother: str = ""  #: name of the two-way smoother :meth:`smooth` runs ("" when the filter has none)
+    needs_motion: bool = False  #: :meth:`step` wants the global fit of each frame pair
+    needs_local_motion: bool = False  #: :meth:`step` wants the local field of each frame pair too
 
     def __init__(self, queries: Queries, info: SequenceInfo):
         p = len(queries)
@@ -35,13 +38,13 @@ class Tracker:
         self.R = np.full((p, 2, 2), np.nan)
         self.method_code = np.full(p, -1, np.int8)
 
-    def step(self, frame: Frame, prev: Frame | None) -> FrameEstimate:
-        """Advance the started points from ``prev`` to ``frame``, start the new ones, report all."""
+    def step(self, frame: Frame, prev: Frame | None, motion: FrameMotion | None) -> FrameEstimate:
+        """Advance the started points from ``prev`` to ``frame`` by ``motion``, start the new ones, report all."""
         self.z[:] = np.nan
         self.R[:] = np.nan
         started = np.flatnonzero(self.queries.frame < frame.index)
         if prev is not None and started.size:
-            self._advance(started, prev, frame)
+            self._advance(started, prev, frame, motion)
         new = np.flatnonzero(self.queries.frame == frame.index)
         if new.size:
             self.xy[new] = self.queries.xy[new]
@@ -60,8 +63,8 @@ class Tracker:
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         """Initialise the filter state of points ``index`` (positions already set)."""
 
-    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
-        """Move points ``index`` from ``prev`` to ``frame``; update xy, cov, visible, z, R."""
+    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion | None) -> None:
+        """Move points ``index`` from ``prev`` to ``frame`` (``motion``: the pair's, as asked for); update xy, cov, visible, z, R."""
         raise NotImplementedError
 
     def smooth(self, tracks: Tracks) -> Tracks:

@@ -35,8 +35,6 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli import registry
-from condtrack_cli.config import Config
 from condtrack_cli.filters import kalman
 from condtrack_cli.filters.base import Tracker
 from condtrack_cli.filters.calibration import ErrorModel
@@ -44,17 +42,13 @@ from condtrack_cli.filters.reference import (
     GatedMeasurement, InitialStateSettings, MeasuredFilterSettings, ReferenceMatcher,
 )
 from condtrack_cli.filters.smoother import TransitionLog, error_excess, rts
-from condtrack_cli.motion.local import LocalField, LocalMotion
+from condtrack_cli.measure.interface import Measurer
+from condtrack_cli.motion.interface import FrameMotion
+from condtrack_cli.motion.local import LocalField
 from condtrack_cli.motion.model import displacement, jacobian
-from condtrack_cli.motion.state_noise import state_noise
+from condtrack_cli.motion.state_noise import StateNoise
 from condtrack_cli.registry import register
 from condtrack_cli.types import Frame, Queries, SequenceInfo, Tracks
-
-
-def build_stage(config: Config, kind: str):
-    """The configured stage object of ``kind`` (e.g. the motion estimator)."""
-    stage = config.stage(kind)
-    return registry.get(kind, stage.name).factory(stage.settings)
 
 
 def linear_dynamics(fit, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -101,26 +95,26 @@ class MDRTracker(Tracker):
     """
 
     method = "mdr"
+    needs_motion = True
 
-    def __init__(self, settings: MDRSettings, queries: Queries, info: SequenceInfo, config: Config):
+    def __init__(self, settings: MDRSettings, queries: Queries, info: SequenceInfo, state_noise: StateNoise):
+        """state_noise: Q_k of the global dynamics."""
         super().__init__(queries, info)
         self.settings = settings
-        self.motion = build_stage(config, "motion")
-        self.motion_settings = config.stage("motion").settings
+        self.state_noise = state_noise
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         self.cov[index] = self.settings.initial_std**2 * np.eye(2)
 
-    def _predict(self, index: np.ndarray, prev: Frame, frame: Frame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """x_{k|k-1} (n, 2), Sigma_{k|k-1} (n, 2, 2) of points ``index`` and the A_k (n, 2, 2) used."""
-        fit = self.motion.fit(prev, frame)
+    def _predict(self, index: np.ndarray, motion: FrameMotion) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """x_{k|k-1} (n, 2), Sigma_{k|k-1} (n, 2, 2) of points ``index`` by the global fit, and the A_k (n, 2, 2) used."""
+        fit = motion.global_fit
         x = self.xy[index]
         A, b = linear_dynamics(fit, x)
-        m = self.motion_settings
-        return *kalman.predict(x, self.cov[index], A, b, state_noise(fit, x, m.q_floor, m.q_misfit, m.misfit_window)), A
+        return *kalman.predict(x, self.cov[index], A, b, self.state_noise.at(fit, x)), A
 
-    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
-        self.xy[index], self.cov[index], _ = self._predict(index, prev, frame)
+    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion) -> None:
+        self.xy[index], self.cov[index], _ = self._predict(index, motion)
         x = self.xy[index]
         w, h = self.info.width, self.info.height
         self.visible[index] = (x[:, 0] >= -0.5) & (x[:, 0] <= w - 0.5) & (x[:, 1] >= -0.5) & (x[:, 1] <= h - 0.5)
@@ -132,36 +126,37 @@ class CLFTracker(MDRTracker):
     method = "clf"
     smoother = "rts"
 
-    def __init__(self, settings: CLFSettings, queries: Queries, info: SequenceInfo, config: Config,
-                 reference: ReferenceMatcher | None = None, errors: ErrorModel | None = None):
-        super().__init__(settings, queries, info, config)
-        self.reference = reference or ReferenceMatcher(build_stage(config, "measure"), settings, len(queries))
-        self.errors = errors or ErrorModel(len(queries), self.reference.measure.settings.gamma)
-        self.local = LocalMotion(self.motion_settings) if settings.dynamics != "global" else None
-        self.on_local = np.full(len(queries), settings.dynamics != "global")  #: (P,) predicted by the local motion
+    def __init__(self, settings: CLFSettings, queries: Queries, info: SequenceInfo, state_noise: StateNoise,
+                 reference: ReferenceMatcher, errors: ErrorModel, smooth: bool):
+        """reference: the points' reference patches and gate; errors: the reported covariance's model;
+        smooth: record what :meth:`smooth` needs (``filter.smooth``)."""
+        super().__init__(settings, queries, info, state_noise)
+        self.reference, self.errors = reference, errors
+        self.needs_local_motion = settings.dynamics != "global"
+        self.on_local = np.full(len(queries), self.needs_local_motion)  #: (P,) predicted by the local motion
         shapes = dict(A=(2, 2), x_pred=(2,), sigma_pred=(2, 2), sigma_post=(2, 2), excess=(2, 2))
-        self.transitions = TransitionLog(len(queries), **shapes) if config.smooth else None
+        self.transitions = TransitionLog(len(queries), **shapes) if smooth else None
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         super()._start(index, frame)
-        self.on_local[index] = self.local is not None
+        self.on_local[index] = self.needs_local_motion
         self.reference.start(index, frame, self.xy[index])
         self.errors.start(index, self.cov[index])
 
-    def step(self, frame: Frame, prev: Frame | None):
+    def step(self, frame: Frame, prev: Frame | None, motion: FrameMotion | None):
         self.errors.begin_frame()
-        return super().step(frame, prev)
+        return super().step(frame, prev, motion)
 
     def reported_cov(self) -> np.ndarray:
         """The error model's covariance (``calibration.py``), not the one the gate uses."""
         return self.errors.reported.copy()
 
-    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
+    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion) -> None:
         x_prev, found_before = self.xy[index].copy(), self.visible[index].copy()
-        x_global, sigma_global, A_global = self._predict(index, prev, frame)
+        x_global, sigma_global, A_global = self._predict(index, motion)
         x_pred, sigma_pred, A = x_global, sigma_global, A_global
-        if self.local is not None:
-            A_local, b_local, Q_local = local_dynamics(self.local.field(prev, frame), x_prev)
+        if self.needs_local_motion:
+            A_local, b_local, Q_local = local_dynamics(motion.local_field, x_prev)
             x_local, sigma_local = kalman.predict(x_prev, self.cov[index], A_local, b_local, Q_local)
             local = self.on_local[index]
             x_pred = np.where(local[:, None], x_local, x_global)
@@ -178,7 +173,7 @@ class CLFTracker(MDRTracker):
         self.visible[index] = measured.valid
         self.z[index], self.R[index] = measured.z, measured.R
         retaken = self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
-        disagreement = x_local - x_global if self.local is not None else np.zeros_like(x_global)
+        disagreement = x_local - x_global if self.needs_local_motion else np.zeros_like(x_global)
         self.errors.update(index, x_pred, sigma_pred, measured.z, measured.R_used, measured.valid, self.xy[index],
                            self.cov[index], retaken, disagreement)
         if self.transitions is not None:
@@ -217,10 +212,13 @@ class CLFTracker(MDRTracker):
 
 
 @register("filter", "mdr", MDRSettings, "MDR baseline: the global robust motion alone, no measurement")
-def make_mdr(settings: MDRSettings, queries: Queries, info: SequenceInfo, config: Config, **_context) -> MDRTracker:
-    return MDRTracker(settings, queries, info, config)
+def make_mdr(settings: MDRSettings, *, queries: Queries, info: SequenceInfo, state_noise: StateNoise,
+             **_context) -> MDRTracker:
+    return MDRTracker(settings, queries, info, state_noise)
 
 
 @register("filter", "clf", CLFSettings, "conditional linear filter (paper §3, Fig. 1): global motion + SSD measurement")
-def make_clf(settings: CLFSettings, queries: Queries, info: SequenceInfo, config: Config, **_context) -> CLFTracker:
-    return CLFTracker(settings, queries, info, config)
+def make_clf(settings: CLFSettings, *, queries: Queries, info: SequenceInfo, measure: Measurer, gamma: float,
+             state_noise: StateNoise, smooth: bool, **_context) -> CLFTracker:
+    reference = ReferenceMatcher(measure, settings, len(queries), gamma)
+    return CLFTracker(settings, queries, info, state_noise, reference, ErrorModel(len(queries), gamma), smooth)

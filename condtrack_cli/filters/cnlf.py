@@ -32,17 +32,15 @@ from typing import Literal
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli.config import Config
 from condtrack_cli.filters.base import Tracker
 from condtrack_cli.filters.calibration import ErrorModel
-from condtrack_cli.filters.clf import build_stage
 from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, sample_gauss2
 from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMatcher
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise
 from condtrack_cli.filters.smoother import TransitionLog, error_excess, particle_smoother, weighted_moments
-from condtrack_cli.motion.local import LocalMotion
+from condtrack_cli.measure.interface import Measurer
+from condtrack_cli.motion.interface import FrameMotion
 from condtrack_cli.motion.model import displacement
-from condtrack_cli.motion.robust import GlobalMotion
 from condtrack_cli.registry import register
 from condtrack_cli.types import FrameEstimate, Frame, Queries, SequenceInfo, Tracks
 
@@ -109,26 +107,28 @@ class CNLFTracker(Tracker):
 
     method = "cnlf"
     smoother = "ffbsm"
+    needs_motion = True
+    needs_local_motion = True
 
-    def __init__(self, settings: CNLFSettings, queries: Queries, info: SequenceInfo, config: Config,
-                 rng: np.random.Generator, reference: ReferenceMatcher | None = None, errors: ErrorModel | None = None):
+    def __init__(self, settings: CNLFSettings, queries: Queries, info: SequenceInfo, rng: np.random.Generator,
+                 reference: ReferenceMatcher, errors: ErrorModel, smooth: bool, store_particles: bool):
+        """reference: the points' reference patches and gate; errors: the reported covariance's model;
+        smooth: record what :meth:`smooth` needs (``filter.smooth``); store_particles: :meth:`extras` returns them."""
         super().__init__(queries, info)
         self.settings, self.rng = settings, rng
-        self.local = LocalMotion(config.stage("motion").settings)
-        self.reference = reference or ReferenceMatcher(build_stage(config, "measure"), settings, len(queries))
-        self.errors = errors or ErrorModel(len(queries), self.reference.measure.settings.gamma)
+        self.reference, self.errors = reference, errors
         p, n = len(queries), settings.particles
         self.particles = np.full((p, n, 2), np.nan)
         self.log_w = np.full((p, n), -np.log(n))
         self.lineage_start = np.full(p, -1)  #: pass frame at which each point's particles were (re)drawn
         self.particle_history: list[np.ndarray] = []  #: per frame, (P, N, 2) particles, NaN off the CNLF
-        self.store_particles = config.output.store_particles
+        self.store_particles = store_particles
         self.ancestor_history: list[np.ndarray] = []  #: per frame, (P, N) index of each particle's parent
-        self.transitions = TransitionLog(p, log_w=(n,), mu=(n, 2), Q=(n, 2, 2), excess=(2, 2)) if config.smooth else None
+        self.transitions = TransitionLog(p, log_w=(n,), mu=(n, 2), Q=(n, 2, 2), excess=(2, 2)) if smooth else None
 
-    def step(self, frame: Frame, prev: Frame | None) -> FrameEstimate:
+    def step(self, frame: Frame, prev: Frame | None, motion: FrameMotion | None) -> FrameEstimate:
         self.begin_frame()
-        estimate = super().step(frame, prev)
+        estimate = super().step(frame, prev, motion)
         self.end_frame()
         return estimate
 
@@ -170,10 +170,10 @@ class CNLFTracker(Tracker):
         """xy and cov of points ``index``: the weighted mean and covariance of the current particles."""
         self.xy[index], self.cov[index] = weighted_moments(self.particles[index], self.log_w[index])
 
-    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
+    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion) -> None:
         x_prev = self.xy[index].copy()
         found_before = self.visible[index].copy()
-        field = self.local.field(prev, frame)
+        field = motion.local_field
         x = self.particles[index]  # (n, N, 2)
         mu = x + field.displacement(x)  # eq. (5) mean
         Q = field.noise(x)  # (n, N, 2, 2)
@@ -191,8 +191,7 @@ class CNLFTracker(Tracker):
         self.visible[index] = measured.valid
         self.z[index], self.R[index] = measured.z, measured.R
         retaken = self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
-        fit = GlobalMotion(self.local.settings).fit(prev, frame)  # cached by the local field
-        disagreement = field.displacement(x_prev) - displacement(fit, x_prev)
+        disagreement = field.displacement(x_prev) - displacement(motion.global_fit, x_prev)
         self.errors.update(index, gate_mean, gate_cov, measured.z, measured.R_used, measured.valid, self.xy[index],
                            self.cov[index], retaken, disagreement)
         if self.transitions is not None:
@@ -240,6 +239,7 @@ class CNLFTracker(Tracker):
 
 
 @register("filter", "cnlf", CNLFSettings, "conditional nonlinear filter (paper §4, Fig. 2): particles, local motion, optimal proposal")
-def make_cnlf(settings: CNLFSettings, queries: Queries, info: SequenceInfo, config: Config, rng: np.random.Generator,
-              **_context) -> CNLFTracker:
-    return CNLFTracker(settings, queries, info, config, rng)
+def make_cnlf(settings: CNLFSettings, *, queries: Queries, info: SequenceInfo, rng: np.random.Generator,
+              measure: Measurer, gamma: float, smooth: bool, store_particles: bool, **_context) -> CNLFTracker:
+    reference = ReferenceMatcher(measure, settings, len(queries), gamma)
+    return CNLFTracker(settings, queries, info, rng, reference, ErrorModel(len(queries), gamma), smooth, store_particles)

@@ -15,8 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli.config import StageSettings
 from condtrack_cli.filters import kalman
+from condtrack_cli.measure.interface import Measurer
+from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import Frame
 
 
@@ -56,9 +57,10 @@ class GatedMeasurement:
 class ReferenceMatcher:
     """Reference patches of P points and their gated measurement (paper §5.2, §3.2)."""
 
-    def __init__(self, measure, settings: MeasuredFilterSettings, n_points: int):
-        self.measure, self.settings = measure, settings
-        t = measure.settings.template
+    def __init__(self, measure: Measurer, settings: MeasuredFilterSettings, n_points: int, gamma: float):
+        """measure: the measurement stage; gamma: the gate's threshold on nu^T S^-1 nu (``measure.gamma``)."""
+        self.measure, self.settings, self.gamma = measure, settings, gamma
+        t = measure.template_side
         self.templates = np.zeros((n_points, t, t), np.float32)
         self.gate_r = np.repeat(settings.nominal_r * np.eye(2)[None], n_points, axis=0)
         self.noise_sigma: float | None = None
@@ -74,7 +76,7 @@ class ReferenceMatcher:
         m = self.measure.measure(frame.gray, self.templates[index], predicted, s_pred + self.gate_r[index], self.noise_sigma)
         r_used = np.where(m.informative[:, None, None], m.R, np.eye(2))
         nu = np.where(m.informative[:, None], m.z - predicted, 0.0)
-        valid = m.informative & (kalman.mahalanobis2(nu, s_pred + r_used) <= self.measure.settings.gamma)
+        valid = m.informative & (kalman.mahalanobis2(nu, s_pred + r_used) <= self.gamma)
         s = self.settings
         clamped = np.clip(r_used, -s.gate_r_max, s.gate_r_max)
         clamped[:, [0, 1], [0, 1]] = np.clip(r_used[:, [0, 1], [0, 1]], s.gate_r_min, s.gate_r_max)

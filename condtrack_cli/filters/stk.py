@@ -12,9 +12,10 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli.config import StageSettings
 from condtrack_cli.filters.base import Tracker
+from condtrack_cli.motion.interface import FrameMotion
 from condtrack_cli.registry import register
+from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import Frame, Queries, SequenceInfo
 
 
@@ -47,7 +48,7 @@ class STKTracker(Tracker):
         super().__init__(queries, info)
         self.settings = settings
 
-    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame) -> None:
+    def _advance(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion | None) -> None:
         start = self.xy[index]
         forward, ok_forward = lucas_kanade(prev.image, frame.image, start, self.settings)
         back, ok_back = lucas_kanade(frame.image, prev.image, forward, self.settings)

@@ -21,9 +21,9 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli.config import StageSettings
 from condtrack_cli.errors import CondtrackError, MissingInput
 from condtrack_cli.registry import register
+from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import SequenceInfo
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")

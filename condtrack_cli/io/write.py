@@ -21,9 +21,9 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from condtrack_cli import COORDINATES, SCHEMA_VERSION, __version__
-from condtrack_cli.config import OutputSettings
 from condtrack_cli.io.atomic import atomic_path
 from condtrack_cli.io.formats import track_format
+from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.registry import get, method_codes, register
 from condtrack_cli.types import SequenceInfo, Tracks
 

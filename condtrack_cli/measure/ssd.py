@@ -55,17 +55,17 @@ symmetric with both eigenvalues >= r_floor: never singular, never negative.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
 
-from condtrack_cli.config import StageSettings
+from condtrack_cli.measure.interface import Measurement
 from condtrack_cli.measure.noise import estimate_noise_sigma, noise_threshold
 from condtrack_cli.measure.response import infinite_covariance, response
 from condtrack_cli.measure.surfaces import extract_templates, matching_cost, refine, ssd_surfaces
 from condtrack_cli.registry import register
+from condtrack_cli.settings import StageSettings
 
 #: Most points per group of the search: bounds the (P, G, G) temporaries (about 100 kB per point at the largest gate).
 _CHUNK = 512
@@ -113,24 +113,6 @@ class SSDSettings(StageSettings):
         if value < info.data.get("search_min", 0):
             raise ValueError("must be at least search_min")
         return value
-
-
-@dataclass(frozen=True)
-class Measurement:
-    """The SSD measurements of P points on one frame.
-
-    z: (P, 2) float64 measured position (px, sub-pixel); NaN where no candidate was in the gate.
-    R: (P, 2, 2) float64 covariance of z (px^2, eq. 9); diagonal +inf (off-diagonal 0) where the
-       surface carries no information (and where z is NaN); otherwise symmetric with eigenvalues
-       >= ``r_floor``.
-    residual: (P,) float64 r_k(z_k), the SSD at the integer minimum (grey levels^2); NaN with z.
-    informative: (P,) bool, R finite.
-    """
-
-    z: np.ndarray
-    R: np.ndarray
-    residual: np.ndarray
-    informative: np.ndarray
 
 
 def _half_sizes(gate_cov: np.ndarray, settings: SSDSettings) -> np.ndarray:
@@ -269,6 +251,7 @@ class SSDMeasure:
 
     def __init__(self, settings: SSDSettings):
         self.settings = settings
+        self.template_side = settings.template  #: side t of the reference patches (px)
 
     def templates(self, gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """(M, t, t) float32 reference patches around (M, 2) positions of a (H, W) float32 frame."""

@@ -1,3 +1,3 @@
 """Robust parametric motion estimation (paper §5.1)."""
 
-from condtrack_cli.motion import robust  # noqa: F401  (registers the stage)
+from condtrack_cli.motion import stage  # noqa: F401  (registers the stage)

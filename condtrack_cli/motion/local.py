@@ -108,7 +108,6 @@ from condtrack_cli.motion.model import MotionFit, displacement, warp_maps
 from condtrack_cli.motion.pyramid import Pyramid, build_pyramid, frame_pyramid, usable_levels
 from condtrack_cli.motion.robust import (
     MAD_TO_SIGMA,
-    GlobalMotion,
     RobustMotionSettings,
     _sample,
     estimate_from_pyramids,
@@ -701,32 +700,16 @@ def local_field(prev: Pyramid, cur: Pyramid, fit: MotionFit, settings: RobustMot
 
 
 class LocalMotion:
-    """Local-support motion stage (CNLF dynamics): one field per frame pair, shared through ``Frame.cache``."""
+    """Local-support motion stage (CNLF dynamics, ``motion/interface.py``): one field per frame pair."""
 
     def __init__(self, settings: RobustMotionSettings):
         self.settings = settings
         self._workspaces = {}  # work arrays by level layout, kept from frame to frame (not thread-safe)
 
-    def field(self, prev: Frame, cur: Frame) -> LocalField:
-        """The field from ``prev`` to ``cur``, cached in ``cur.cache['motion.local']``.
-
-        Reused when asked for with the same previous frame and settings
-        (``cur.cache['motion.local.key']``). The global fit and the pyramids come
-        from (and go to) the frames' caches.
-        """
-        key = (prev.index, self.settings)
-        if cur.cache.get("motion.local.key") == key:
-            return cur.cache["motion.local"]
+    def field(self, prev: Frame, cur: Frame, fit: MotionFit) -> LocalField:
+        """The field from ``prev`` to ``cur`` on the global ``fit`` of the same pair; pyramids from ``frame_pyramid``."""
         levels = local_levels(prev.image.shape, self.settings.levels)
-        depth = max(levels, usable_levels(prev.image.shape, self.settings.levels))
-        prev_pyramid, cur_pyramid = frame_pyramid(prev, depth), frame_pyramid(cur, depth)  # deep enough for both fits
-        fit = GlobalMotion(self.settings).fit(prev, cur)
-        field = local_field(Pyramid(prev_pyramid.base, prev_pyramid.levels[:levels]),
-                            Pyramid(cur_pyramid.base, cur_pyramid.levels[:levels]), fit, self.settings,
-                            self._workspaces)
-        cur.cache["motion.local"] = field
-        cur.cache["motion.local.key"] = key
-        return field
+        return local_field(frame_pyramid(prev, levels), frame_pyramid(cur, levels), fit, self.settings, self._workspaces)
 
 
 def _masked_median(values: np.ndarray, mask: np.ndarray) -> np.ndarray:

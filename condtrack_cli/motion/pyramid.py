@@ -56,11 +56,9 @@ def usable_levels(shape: tuple[int, int], levels: int) -> int:
 
 
 def frame_pyramid(frame: Frame, levels: int) -> Pyramid:
-    """``build_pyramid`` of ``frame.gray``, cached in ``frame.cache['motion.pyramid']``, ``levels`` deep."""
-    cached = frame.cache.get("motion.pyramid")
-    if cached is None:
-        cached = build_pyramid(frame.gray, levels)
-    elif len(cached.levels) < levels:  # a deeper one asked for later: the cached levels are kept
-        cached = deepen(cached, levels)
-    frame.cache["motion.pyramid"] = cached
-    return Pyramid(cached.base, cached.levels[:levels])
+    """``build_pyramid`` of ``frame.gray``, ``levels`` deep, kept in ``frame.pyramid`` for the next frame pair."""
+    if frame.pyramid is None:
+        frame.pyramid = build_pyramid(frame.gray, levels)
+    elif len(frame.pyramid.levels) < levels:  # a deeper one asked for later: the levels built are kept
+        frame.pyramid = deepen(frame.pyramid, levels)
+    return Pyramid(frame.pyramid.base, frame.pyramid.levels[:levels])

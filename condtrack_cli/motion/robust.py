@@ -61,11 +61,10 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli.config import StageSettings
 from condtrack_cli.motion._blocks import block_displacements, block_hypotheses
 from condtrack_cli.motion.model import MotionFit, motion_basis, warp_maps
 from condtrack_cli.motion.pyramid import Pyramid, build_pyramid, frame_pyramid, usable_levels
-from condtrack_cli.registry import register
+from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import Frame
 
 
@@ -302,28 +301,12 @@ def estimate_motion(prev: np.ndarray, cur: np.ndarray, settings: RobustMotionSet
 
 
 class GlobalMotion:
-    """Global-support motion stage: one fit per frame pair, shared through ``Frame.cache``."""
+    """Global-support motion stage (``motion/interface.py``): the dominant motion of a frame pair."""
 
     def __init__(self, settings: RobustMotionSettings):
         self.settings = settings
 
     def fit(self, prev: Frame, cur: Frame) -> MotionFit:
-        """The fit from ``prev`` to ``cur``, cached in ``cur.cache['motion.global']``.
-
-        The cached fit is reused when asked for with the same previous frame and
-        settings (``cur.cache['motion.global.key']``); pyramids are cached per frame.
-        """
-        key = (prev.index, self.settings)
-        if cur.cache.get("motion.global.key") == key:
-            return cur.cache["motion.global"]
+        """The fit from ``prev`` to ``cur``; the frames' pyramids are built once (``frame_pyramid``)."""
         levels = usable_levels(prev.image.shape, self.settings.levels)
-        fit = estimate_from_pyramids(frame_pyramid(prev, levels), frame_pyramid(cur, levels), self.settings)
-        cur.cache["motion.global"] = fit
-        cur.cache["motion.global.key"] = key
-        return fit
-
-
-@register("motion", "robust", RobustMotionSettings, "robust parametric motion, coarse to fine with IRLS")
-def make_robust_motion(settings: RobustMotionSettings, **_context) -> GlobalMotion:
-    """Robust parametric motion, global support."""
-    return GlobalMotion(settings)
+        return estimate_from_pyramids(frame_pyramid(prev, levels), frame_pyramid(cur, levels), self.settings)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
@@ -44,3 +46,16 @@ def state_noise(
     basis = motion_basis(fit.model, xy, fit.origin, fit.length)
     isotropic = q_floor + (q_misfit * (1 - neighbourhood_support(fit, xy, misfit_window)) ** 2 if q_misfit else 0.0)
     return basis @ fit.theta_cov @ basis.transpose(0, 2, 1) + np.multiply.outer(isotropic, np.eye(2))
+
+
+@dataclass(frozen=True)
+class StateNoise:
+    """The parameters of :func:`state_noise` (``motion.q_floor``, ``q_misfit``, ``misfit_window``), for the filters."""
+
+    q_floor: float  #: px^2
+    q_misfit: float  #: px^2
+    misfit_window: int  #: px
+
+    def at(self, fit: MotionFit, xy: np.ndarray) -> np.ndarray:
+        """Q_k (N, 2, 2) px^2 of the dynamics of ``fit`` at (N, 2) positions xy (px)."""
+        return state_noise(fit, xy, self.q_floor, self.q_misfit, self.misfit_window)

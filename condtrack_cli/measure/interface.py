@@ -1,0 +1,53 @@
+"""Contract of a ``measure`` stage: a frame and reference patches in, each point's measurement z_k, R_k out (§5.2).
+
+A measure stage is registered with ``register("measure", name, SettingsModel)`` on a
+factory called ``factory(settings) -> Measurer``. The filters keep the reference
+patches (``filters/reference.py``) and ask the measurer to take, compare and
+match them. Images are (H, W) float32 grey levels (``Frame.gray``); positions px
+in the package's pixel convention; covariances px^2.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """The measurements of P points on one frame.
+
+    z: (P, 2) float64 measured position (px, sub-pixel); NaN where no candidate was in the gate.
+    R: (P, 2, 2) float64 covariance of z (px^2, eq. 9); diagonal +inf (off-diagonal 0) where the
+       surface carries no information (and where z is NaN); otherwise symmetric with eigenvalues
+       >= ``r_floor``.
+    residual: (P,) float64 r_k(z_k), the SSD at the integer minimum (grey levels^2); NaN with z.
+    informative: (P,) bool, R finite.
+    """
+
+    z: np.ndarray
+    R: np.ndarray
+    residual: np.ndarray
+    informative: np.ndarray
+
+
+class Measurer(Protocol):
+    """Reference patches and their match in the validation gate."""
+
+    template_side: int  #: side t (px, odd) of the patches ``templates`` returns
+
+    def noise_sigma(self, gray: np.ndarray) -> float:
+        """The acquisition noise std of the frame (grey levels)."""
+
+    def templates(self, gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """(M, t, t) float32 patches centred on (M, 2) positions ``xy`` (px)."""
+
+    def cost(self, templates: np.ndarray, patches: np.ndarray) -> np.ndarray:
+        """(M,) matching cost of aligned (M, t, t) patch pairs (grey levels^2)."""
+
+    def measure(self, gray: np.ndarray, templates: np.ndarray, predicted: np.ndarray, gate_cov: np.ndarray,
+                sigma: float) -> Measurement:
+        """Match (P, t, t) ``templates`` around (P, 2) ``predicted`` positions within the gate of
+        innovation covariance (P, 2, 2) ``gate_cov`` (px^2), with noise std ``sigma`` (grey levels)."""

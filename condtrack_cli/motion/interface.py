@@ -1,0 +1,61 @@
+"""Contract of a ``motion`` stage: two consecutive frames in, their motion out (paper §5.1).
+
+A motion stage is registered with ``register("motion", name, SettingsModel)`` on a
+factory called ``factory(settings) -> MotionStages``. For a filter that needs
+motion (``Tracker.needs_motion``) the pipeline calls, once per frame pair k-1 -> k
+with a point started before k, the global estimator, then the local one on the
+global fit when the filter needs it too (``Tracker.needs_local_motion``), and
+hands the filter the result as a :class:`FrameMotion`. Positions are px of frame k-1 in the package's
+pixel convention (x right, y down, (0, 0) the centre of the top-left pixel).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Protocol
+
+from condtrack_cli.motion.model import MotionFit
+from condtrack_cli.motion.state_noise import StateNoise
+from condtrack_cli.types import Frame
+
+if TYPE_CHECKING:
+    from condtrack_cli.motion.local import LocalField
+
+
+class GlobalMotionEstimator(Protocol):
+    """The dominant motion of a frame pair."""
+
+    def fit(self, prev: Frame, cur: Frame) -> MotionFit:
+        """The parametric fit from ``prev`` (frame k-1) to ``cur`` (frame k): U(x) = P(x) theta, px."""
+
+
+class LocalMotionEstimator(Protocol):
+    """The motion of the window around every position (the CNLF's dynamics, eq. 5)."""
+
+    def field(self, prev: Frame, cur: Frame, fit: MotionFit) -> LocalField:
+        """The local field from ``prev`` to ``cur``, built on the global ``fit`` of the same pair.
+
+        ``LocalField.displacement(xy)``: U(x) (..., 2) px; ``LocalField.noise(xy)``:
+        Q_k(x) (..., 2, 2) px^2, at positions (..., 2) of frame k-1.
+        """
+
+
+@dataclass(frozen=True)
+class MotionStages:
+    """What a motion factory builds: both estimators and Q_k of the global dynamics (eq. 1)."""
+
+    global_motion: GlobalMotionEstimator
+    local_motion: LocalMotionEstimator
+    state_noise: StateNoise  #: Q_k (px^2) of the global fit's dynamics at any positions
+
+
+@dataclass(frozen=True)
+class FrameMotion:
+    """The motion of one frame pair k-1 -> k, as the pipeline hands it to ``Tracker.step``.
+
+    global_fit: the dominant motion (``MotionFit``). local_field: the local field
+    (``LocalField``), None when the filter does not need it.
+    """
+
+    global_fit: MotionFit
+    local_field: LocalField | None = None

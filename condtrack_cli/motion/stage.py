@@ -1,0 +1,19 @@
+"""The registered motion stage ``robust``: the global fit, the local field and Q_k, from one settings model."""
+
+from __future__ import annotations
+
+from condtrack_cli.motion.interface import MotionStages
+from condtrack_cli.motion.local import LocalMotion
+from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings
+from condtrack_cli.motion.state_noise import StateNoise
+from condtrack_cli.registry import register
+
+
+@register("motion", "robust", RobustMotionSettings, "robust parametric motion, coarse to fine with IRLS")
+def make_robust_motion(settings: RobustMotionSettings, **_context) -> MotionStages:
+    """Robust parametric motion: global support (``robust.py``), local support (``local.py``), Q_k (``state_noise.py``)."""
+    return MotionStages(
+        global_motion=GlobalMotion(settings),
+        local_motion=LocalMotion(settings),
+        state_noise=StateNoise(settings.q_floor, settings.q_misfit, settings.misfit_window),
+    )

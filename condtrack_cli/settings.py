@@ -1,0 +1,23 @@
+"""The base of every stage's settings model (pydantic), apart from the config that fills them.
+
+Stages import this module, never ``condtrack_cli.config``: a stage is handed its
+validated settings and the objects it works with (``pipeline.py`` builds them).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+from pydantic import BaseModel, ConfigDict
+
+
+class StageSettings(BaseModel):
+    """Base of every stage's settings: frozen, strict types, unknown keys refused.
+
+    ``frame_windows`` names the fields that are window sides in pixels and must
+    fit in the frame; :meth:`condtrack_cli.config.Config.check_fits_frame` checks
+    them once the frame size is known.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+    frame_windows: ClassVar[tuple[str, ...]] = ()
