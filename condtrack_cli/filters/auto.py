@@ -146,8 +146,7 @@ class AutoTracker(Tracker):
         return self.errors.reported.copy()
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
-        self.cnlf.xy[index], self.cnlf.visible[index] = self.xy[index], self.visible[index]
-        self.cnlf._start(index, frame)
+        self.cnlf.start_members(index, frame, self.xy[index])
         self.on_cnlf[index] = True
         self._collect(index, self.cnlf)
 
@@ -171,19 +170,17 @@ class AutoTracker(Tracker):
         to_cnlf = index[want & ~self.on_cnlf[index]]
         to_clf = index[~want & self.on_cnlf[index]]
         if to_cnlf.size:
-            self.cnlf.adopt(to_cnlf, frame.index, self.xy[to_cnlf], self.cov[to_cnlf])
-            self.cnlf.visible[to_cnlf] = self.visible[to_cnlf]
+            self.cnlf.take_over(to_cnlf, frame.index, self.xy[to_cnlf], self.cov[to_cnlf], self.visible[to_cnlf])
             self.on_cnlf[to_cnlf] = True
         if to_clf.size:
-            self.clf.xy[to_clf], self.clf.cov[to_clf] = self.xy[to_clf], self.cov[to_clf]
-            self.clf.visible[to_clf] = self.visible[to_clf]
+            self.clf.take_over(to_clf, frame.index, self.xy[to_clf], self.cov[to_clf], self.visible[to_clf])
             self.cnlf.release(to_clf)
             self.on_cnlf[to_clf] = False
         # A point handed to the CLF, or not found while on it, is predicted by the dominant motion (rule 4: a
         # covered point's window moves with its occluder); the CLF's own ``select`` may take it back to the
         # local motion once it is found again (filters/clf.py).
-        self.clf.on_local[to_clf] = False
-        self.clf.on_local[index[lost & ~want]] = False
+        self.clf.predict_by_dominant(to_clf)
+        self.clf.predict_by_dominant(index[lost & ~want])
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion) -> None:
         fit, field = motion.global_fit, motion.local_field
@@ -192,9 +189,7 @@ class AutoTracker(Tracker):
         self._route(index, frame, fit, field)
         x_prev, cov_prev = self.xy[index].copy(), self.cov[index].copy()
         for tracker, members in ((self.clf, index[~self.on_cnlf[index]]), (self.cnlf, index[self.on_cnlf[index]])):
-            tracker.z[members], tracker.R[members] = np.nan, np.nan
-            if members.size:
-                tracker._advance(members, prev, frame, motion)
+            tracker.advance_members(members, prev, frame, motion)
             self._collect(members, tracker)
         self._weigh(index, x_prev, cov_prev, fit, field)
 

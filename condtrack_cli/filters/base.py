@@ -56,6 +56,24 @@ class Tracker:
             z=self.z.copy(), R=self.R.copy(), method=self.method_code.copy(),
         )
 
+    # What a router (``auto``) that splits the points between filters calls.
+
+    def start_members(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> None:
+        """Start points ``index`` at their queries xy (n, 2) px on ``frame``."""
+        self.xy[index], self.visible[index] = xy, True
+        self._start(index, frame)
+
+    def take_over(self, index: np.ndarray, frame_index: int, xy: np.ndarray, cov: np.ndarray,
+                  visible: np.ndarray) -> None:
+        """Points ``index`` handed over from another filter at frame ``frame_index``: xy (n, 2) px, cov (n, 2, 2) px^2."""
+        self.xy[index], self.cov[index], self.visible[index] = xy, cov, visible
+
+    def advance_members(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion | None) -> None:
+        """``_advance`` of points ``index`` alone (none: nothing), their z and R reset first."""
+        self.z[index], self.R[index] = np.nan, np.nan
+        if index.size:
+            self._advance(index, prev, frame, motion)
+
     def reported_cov(self) -> np.ndarray:
         """(P, 2, 2) the covariance reported for the current frame: the filter's own unless overridden."""
         return self.cov.copy()

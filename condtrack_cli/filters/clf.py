@@ -193,6 +193,10 @@ class CLFTracker(MDRTracker):
         closer = miss_global - miss_local >= self.settings.select_margin
         self.on_local[index[measured.valid]] = closer[measured.valid]
 
+    def predict_by_dominant(self, index: np.ndarray) -> None:
+        """Points ``index`` are predicted by the dominant motion until ``select`` finds the local one better."""
+        self.on_local[index] = False
+
     def smooth(self, tracks: Tracks, members: np.ndarray | None = None) -> Tracks:
         """``tracks`` (this filter's :meth:`finish`) with the RTS-smoothed xy and cov of each point's segments.
 

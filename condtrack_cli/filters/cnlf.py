@@ -152,6 +152,12 @@ class CNLFTracker(Tracker):
         self.lineage_start[index] = frame_index
         self._report(index)
 
+    def take_over(self, index: np.ndarray, frame_index: int, xy: np.ndarray, cov: np.ndarray,
+                  visible: np.ndarray) -> None:
+        """Points ``index`` handed over from another filter: particles drawn from N(xy, cov) (:meth:`adopt`)."""
+        self.adopt(index, frame_index, xy, cov)
+        self.visible[index] = visible
+
     def release(self, index: np.ndarray) -> None:
         """Points ``index`` leave this filter: their frames keep the estimates already reported."""
         self.lineage_start[index] = -1
