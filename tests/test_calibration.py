@@ -98,3 +98,24 @@ def test_a_covered_point_dragged_by_its_occluder_gets_the_spread_of_the_two_moti
     result, _ = score_tracks(tracks, truth, "first")
     assert result["cov95"] >= 0.90
     assert result["cov_finite"] >= 0.95
+
+
+def test_a_match_where_the_two_motions_part_by_far_more_than_the_gate_carries_their_spread():
+    """A point found on every frame while the local and the dominant motion predict 12 px apart.
+
+    Before the match the patch may have followed either motion over this frame:
+    B = lambda Sigma + d d^T / 2 (d = 12 px along x) against a gate of tr S = 2.2 px^2,
+    so the match is wrong with probability exp(-gamma tr S / (2 tr B)) = 0.87 and
+    its spread stays (0.87 x 72 px^2 along x); across the disagreement nothing is added.
+    """
+    model = ErrorModel(1, 9.21)
+    index = np.array([0])
+    unit = np.eye(2)[None]
+    model.start(index, 0.1 * unit)
+    zero = np.zeros((1, 2))
+    found = np.array([True])
+    model.begin_frame()
+    model.update(index, zero, 0.1 * unit, zero, unit, found, zero, 0.05 * unit, ~found, np.array([[12.0, 0.0]]))
+    wrong = np.exp(-0.5 * 9.21 * 2.2 / 72.0)
+    assert model.reported[0, 0, 0] == pytest.approx(0.05 + wrong * 72.0, rel=1e-6)
+    assert model.reported[0, 1, 1] == pytest.approx(0.05, rel=1e-6)

@@ -31,13 +31,20 @@ The model, per point, reported covariance = max(lambda, 1) Sigma + D + C:
   true point, which later measurements of that patch cannot reduce. 0 at the
   query. Each re-take of the reference at the posterior adds lambda Sigma_post.
   Each match adds the spread of a wrong match with its probability (PDA-like,
-  one candidate): with B = lambda Sigma_{k|k-1} + C the covariance of where the
+  one candidate): with B = lambda Sigma_{k|k-1} + C' the covariance of where the
   patch may be, the patch lies in the gate {nu^T S^-1 nu <= gamma} with
   probability about 1 - exp(-gamma tr S / (2 tr B)) (isotropic approximation);
   a match found when it does not is on something else, so D gains
-  exp(-gamma tr S / (2 tr B)) (B + s s^T), s the step the update made. This is
-  what keeps a point re-found after coasting (large C, the usual gate) from
-  reporting a small covariance around a wrong patch.
+  exp(-gamma tr S / (2 tr B)) (B + s s^T), s the step the update made. C' is C
+  (below) with d including this frame's disagreement (lambda Sigma_{k|k-1}
+  already holds this frame's one-step miss): a point found on every frame may
+  still have followed either motion over this one, so where the local and the
+  dominant motion part by much more than the gate, a match in the gate may be
+  on the patch the other motion carried there. This keeps a point re-found
+  after coasting (large C, the usual gate), or matched on every frame where the
+  two motions disagree (parallax, a moving object's edge), from reporting a
+  small covariance around a wrong patch: on the shared real sets the found rows
+  outside their 99 % ellipse were mostly on such disagreement (issue 12).
 - C: the coasting excess, 0 on a found frame. While a point is not found for t
   frames its error grows by the dynamics' one-step miss every frame, in the same
   direction (a constant velocity error): t^2 q I, q the per-axis mean squared
@@ -90,10 +97,12 @@ class ErrorModel:
         self.detour[index] = 0.0
         self.reported[index] = sigma
 
-    def _coasting(self, index: np.ndarray) -> np.ndarray:
-        """C (n, 2, 2) of points ``index``: t^2 q I + the accumulated disagreement's outer product (px^2)."""
-        detour = self.detour[index]
-        return (self.coasted[index] ** 2 * self.miss)[:, None, None] * np.eye(2) + 0.5 * np.einsum("ni,nj->nij", detour, detour)
+    def _coasting(self, frames: np.ndarray, detour: np.ndarray) -> np.ndarray:
+        """C (n, 2, 2) after (n,) ``frames`` steps on the dynamics summing to the (n, 2) ``detour`` disagreement (px^2).
+
+        t^2 q I + d d^T / 2 (module docstring).
+        """
+        return (frames**2 * self.miss)[:, None, None] * np.eye(2) + 0.5 * np.einsum("ni,nj->nij", detour, detour)
 
     def begin_frame(self) -> None:
         """Before a frame's steps: forget part of the pooled innovation statistics."""
@@ -118,7 +127,9 @@ class ErrorModel:
             self._nis += (nis.sum(), nis.size)
             self._miss += ((nu * nu).sum(), nu.shape[0])
         lam = self.scale
-        before = lam * s_pred + self._coasting(index)  # where the patch may be
+        # Where the patch may be before this frame's match (lambda s_pred holds this frame's one-step miss; the
+        # disagreement of the two motions over this frame adds to that of the frames coasted).
+        before = lam * s_pred + self._coasting(self.coasted[index], self.detour[index] + disagreement)
         # The probability that the patch lies in the gate {nu^T S^-1 nu <= gamma} under N(predicted, before),
         # isotropic approximation: 1 - exp(-gamma s_gate / (2 s_before)); a match found when it does not is wrong.
         ratio = np.trace(S, axis1=1, axis2=2) / np.maximum(np.trace(before, axis1=1, axis2=2), 1e-12)
@@ -128,5 +139,5 @@ class ErrorModel:
         scaled = max(lam, 1.0) * sigma
         self.coasted[index] = np.where(found, 0, self.coasted[index] + 1)
         self.detour[index] = np.where(found[:, None], 0.0, self.detour[index] + disagreement)
-        self.reported[index] = scaled + self.drift[index] + self._coasting(index)
+        self.reported[index] = scaled + self.drift[index] + self._coasting(self.coasted[index], self.detour[index])
         self.drift[index[retaken]] += lam * sigma[retaken]  # the new reference's offset, from the next frame on
