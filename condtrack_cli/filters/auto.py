@@ -44,16 +44,15 @@ which filter produced it. The rule does not assume which filter is the more
 accurate: a better CLF wins more points through (2) and (3).
 
 Measured with ``python -m condtrack_cli.evaluate.bench --versus-lk``
-(<delta_avg, issue 11 protocol, seed 0; "previous" = the robust-weight rule of
-the first version, issue 11's table): kt3dmoseg seq005 0.722 (previous 0.671;
-clf 0.731), seq009 0.713 (0.523; cnlf 0.750), seq011 0.920 (0.867; clf 0.911),
-seq028 0.656 (0.434; cnlf 0.693), seq059 0.783 (0.704; cnlf 0.784), dinosaur
-0.830 (0.774; clf 0.835), merton1 0.692 (0.347; cnlf 0.692). Not within 0.01
-of the CNLF on seq009 and seq028: rule 4, then without its evidence test,
-handed points lost on parallax to the dominant motion, whose error grows by
-tens of pixels a frame there (kt3dmoseg_seq009: x + v is a poor guide where
-points accelerate outwards); with the test (``lost_evidence`` 0.5) seq009
-0.740, seq028 0.687 (docs/departures.md).
+(<delta_avg, issue 11 protocol, seed 0, commit 73218cf; "first" = the
+robust-weight rule of the first version, issue 11's table; auto / clf /
+cnlf): kt3dmoseg seq005 0.721 / 0.730 / 0.723 (first 0.671), seq009 0.728 /
+0.707 / 0.735 (0.523), seq011 0.914 / 0.907 / 0.913 (0.867), seq028 0.724 /
+0.691 / 0.728 (0.434), seq059 0.774 / 0.752 / 0.776 (0.704), dinosaur 0.852 /
+0.850 / 0.850 (0.774), merton1 0.771 / 0.763 / 0.771 (0.347). Rule 4's
+evidence test: without it, points lost on parallax went to the dominant
+motion, whose error grows by tens of pixels a frame there (seq009 auto 0.712
+-> 0.740 and seq028 0.656 -> 0.687 when it came, docs/departures.md).
 With ``filter.smooth`` each point's contiguous run of CLF frames is
 RTS-smoothed and each run of CNLF frames FFBSm-smoothed (``smoother.py``); a
 handover ends a run, so the frame before it keeps its filtered estimate.
