@@ -44,11 +44,11 @@ which filter produced it. The rule does not assume which filter is the more
 accurate: a better CLF wins more points through (2) and (3).
 
 Measured with ``python -m condtrack_cli.evaluate.bench --versus-lk``
-(<delta_avg, issue 11 protocol, seed 0, commit 73218cf; "first" = the
+(<delta_avg, issue 11 protocol, seed 0; "first" = the
 robust-weight rule of the first version, issue 11's table; auto / clf /
-cnlf): kt3dmoseg seq005 0.721 / 0.730 / 0.723 (first 0.671), seq009 0.728 /
-0.707 / 0.735 (0.523), seq011 0.914 / 0.907 / 0.913 (0.867), seq028 0.724 /
-0.691 / 0.728 (0.434), seq059 0.774 / 0.752 / 0.776 (0.704), dinosaur 0.852 /
+cnlf): kt3dmoseg seq005 0.726 / 0.730 / 0.723 (first 0.671), seq009 0.726 /
+0.707 / 0.738 (0.523), seq011 0.914 / 0.907 / 0.913 (0.867), seq028 0.724 /
+0.691 / 0.728 (0.434), seq059 0.776 / 0.752 / 0.779 (0.704), dinosaur 0.852 /
 0.850 / 0.850 (0.774), merton1 0.771 / 0.763 / 0.771 (0.347). Rule 4's
 evidence test: without it, points lost on parallax went to the dominant
 motion, whose error grows by tens of pixels a frame there (seq009 auto 0.712

@@ -39,7 +39,7 @@ The per-window regression (``exact_local_motion``, the reference):
   starts from its best shift where that halves the unshifted cost (median over
   3 x 3 windows). The passes alone catch a residual of about 2 px of the
   coarsest level; the global quadratic model misses by more on wide baselines
-  and near parallax (oxford_merton1 views 2-3: median 20 px).
+  and near parallax (oxford_merton1: median 13.8 px; ``bench --support``).
 - Q_k(x) = s^2 [(J^T W J + (s / RESIDUAL_PRIOR_STD)^2 I)^-1]_translation + q_floor I,
   the paper leaving Q_k open: the weighted-least-squares covariance of the
   window's translation (J the linearised residual's p columns, W the robust
@@ -638,7 +638,7 @@ def _searched_start(level: _Level, radius: int) -> np.ndarray:
     enough = 0.5 * lay.side**2
     planes, warped = work.planes[:3], work.planes[3]
     positions = work.positions
-    best_cost = unshifted = None
+    best_cost = np.full(lay.node_shape, np.inf)
     best = np.zeros(lay.node_shape + (2,), np.float32)
     for dy in range(-radius, radius + 1):
         for dx in range(-radius, radius + 1):
@@ -655,13 +655,11 @@ def _searched_start(level: _Level, radius: int) -> np.ndarray:
             cost = np.where(count >= enough, (squares - total**2 / np.maximum(count, 1)) / np.maximum(count, 1), np.inf)
             if dx == 0 and dy == 0:
                 unshifted = cost
-            if best_cost is None:
-                best_cost = cost
             better = cost < best_cost
             best_cost = np.where(better, cost, best_cost)
             best[better] = (dx, dy)
     moved = best_cost < SEARCH_GAIN * unshifted
-    start = np.where(moved[:, :, None], best * np.float32(level.factor), np.float32(0)).astype(np.float32)
+    start = np.where(moved[:, :, None], best * np.float32(level.factor), np.float32(0))
     start = cv2.medianBlur(start, 3)  # per component over 3 x 3 nodes: an isolated false match does not start a node
     return np.dstack((start, start))
 

@@ -18,7 +18,9 @@ the smallest stride that fits) to bound the run time.
 ``--speed`` only the speed comparison and the profile.
 
 ``--support SEQUENCE`` prints instead the dominant model's one-step prediction
-error by neighbourhood support (the measurement behind ``auto``'s thresholds).
+error by neighbourhood support (the measurement behind ``auto``'s thresholds),
+then the one-step error of the dominant model and of the local field with and
+without its block-matching start.
 """
 
 from __future__ import annotations
@@ -64,7 +66,7 @@ def main() -> None:
     parser.add_argument("--work", type=Path, default=REPO / "bench" / "out",
                         help="folder for the queries and track files (emptied first; kept for `condtrack eval`)")
     parser.add_argument("--support", type=Path, metavar="SEQUENCE",
-                        help="only print the dominant model's one-step error by support on SEQUENCE (with tracks.csv)")
+                        help="only print the motions' one-step errors on SEQUENCE (with tracks.csv)")
     parser.add_argument("--batch", action="store_true", help="only print the batch throughput table")
     parser.add_argument("--speed", action="store_true",
                         help="only print the speed comparison with OpenCV LK and the profile table (issue 13)")

@@ -78,14 +78,18 @@ def support_table(folder: Path, window: int = 32) -> list[str]:
     measurement behind ``auto``'s thresholds and the misfit term of Q_k.
     """
     from condtrack_cli.frames.readers import FrameSettings, open_frames
+    from condtrack_cli.motion.local import LocalMotion
     from condtrack_cli.motion.model import displacement
     from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings
     from condtrack_cli.motion.state_noise import neighbourhood_support
     from condtrack_cli.types import Frame
 
     truth = load_gt_csv(folder / "tracks.csv")
-    motion = GlobalMotion(RobustMotionSettings())
-    support, error, prev = [], [], None
+    settings = RobustMotionSettings()
+    motion = GlobalMotion(settings)
+    fields = {"local field": LocalMotion(settings),
+              "local field, no search (local_search 0)": LocalMotion(settings.model_copy(update={"local_search": 0}))}
+    support, error, prev = [], {"dominant model": [], **{name: [] for name in fields}}, None
     for index, image in enumerate(open_frames(FrameSettings(), folder)):
         frame = Frame(index, image)
         if prev is not None:
@@ -93,13 +97,21 @@ def support_table(folder: Path, window: int = 32) -> list[str]:
             x, x_next = truth.gt_xy[both, index - 1], truth.gt_xy[both, index]
             fit = motion.fit(prev, frame)
             support.append(neighbourhood_support(fit, x, window))
-            error.append(np.linalg.norm(x + displacement(fit, x) - x_next, axis=1))
+            error["dominant model"].append(np.linalg.norm(x + displacement(fit, x) - x_next, axis=1))
+            for name, local in fields.items():
+                error[name].append(np.linalg.norm(x + local.field(prev, frame, fit).displacement(x) - x_next, axis=1))
         prev = frame
-    support, error = np.concatenate(support), np.concatenate(error)
+    support = np.concatenate(support)
+    error = {name: np.concatenate(values) for name, values in error.items()}
+    dominant = error["dominant model"]
     lines = [f"One-step error of the dominant model on {folder.name}, by support:", "",
              "| support | share | median error (px) |", "|---|---|---|"]
     for low, high in zip(SUPPORT_BINS[:-1], SUPPORT_BINS[1:]):
         inside = (support >= low) & (support < high)
-        median = f"{np.median(error[inside]):.2f}" if inside.any() else "n/a"
+        median = f"{np.median(dominant[inside]):.2f}" if inside.any() else "n/a"
         lines.append(f"| [{low:.1f}, {min(high, 1.0):.1f}{']' if high > 1 else ')'} | {inside.mean():.2f} | {median} |")
+    lines += ["", f"One-step error of each motion on {folder.name} ({len(dominant)} GT steps):", "",
+              "| motion | median (px) | within 1 px | over 16 px |", "|---|---|---|---|"]
+    for name, values in error.items():
+        lines.append(f"| {name} | {np.median(values):.2f} | {np.mean(values < 1):.2f} | {np.mean(values > 16):.2f} |")
     return lines
