@@ -9,7 +9,7 @@ from condtrack_cli import pipeline
 from condtrack_cli.config import load_config
 from condtrack_cli.evaluate.score import score_tracks
 from condtrack_cli.filters import kalman
-from condtrack_cli.filters.auto import lost_on_local
+from condtrack_cli.filters.auto import extrapolation_spread, lost_on_local
 from condtrack_cli.filters.cnlf import CNLFSettings, propagate, resample
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise
 from condtrack_cli.registry import method_code
@@ -160,5 +160,31 @@ def test_a_lost_point_whose_measurements_followed_the_local_motion_keeps_it():
     dominant = np.array([[19.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
     local = np.array([[28.0, 0.0], [6.0, 0.0], [5.0, 0.0]])
     spread = np.broadcast_to(np.eye(2), (3, 2, 2))
-    on_local = lost_on_local(x, velocity, spread, dominant, local, np.array([2.0, 0.1, -3.0]), 0.5)
+    on_local = lost_on_local(x, velocity, spread, dominant, local, np.array([2.0, 0.1, -3.0]), 0.5,
+                             np.zeros(3, bool), 1.0)
     assert on_local.tolist() == [True, False, True]
+
+
+def test_a_lost_point_on_parallax_keeps_the_local_motion_and_a_covered_one_leaves_it():
+    """Rule 4's metric (filters/auto.py, extrapolation_spread) on two lost points on the local motion, mean evidence 0.
+
+    0: a near point on parallax, 20 px/frame, whose local motion says its step grows by 20 % while the dominant
+    one continues it within 1 px: with steps changing by 20 % rms (relative change 0.04) the extrapolation cannot
+    tell them apart (|c| = 15 / (2 (0.75 + 8)) = 0.86 <= margin 1) and the point stays on the local motion; had
+    the scene's steps been steady (relative change 0), it would go to the dominant one. 1: a background point at
+    1.5 px/frame whose window is taken by an occluder at 7.5 px/frame: the jump is 4 times its own speed, and it
+    goes to the dominant motion. Covariance 0.5 I px^2, q_floor 0.25 px^2, one frame after the step was measured.
+    """
+    x = np.zeros((2, 2))
+    velocity = np.array([[20.0, 0.0], [1.5, 0.0]])
+    dominant = np.array([[19.0, 0.0], [1.5, 0.0]])
+    local = np.array([[24.0, 0.0], [7.5, 0.0]])
+    cov = np.broadcast_to(0.5 * np.eye(2), (2, 2, 2))
+    evidence, on_local = np.zeros(2), np.ones(2, bool)
+    for relative_change, expected in ((0.04, [True, False]), (0.0, [False, False])):
+        spread = extrapolation_spread(cov, velocity, np.ones(2), relative_change, 0.25)
+        kept = lost_on_local(x, velocity, spread, dominant, local, evidence, 0.5, on_local, 1.0)
+        assert kept.tolist() == expected
+    # the hysteresis: the same ambiguous parallax point on the dominant motion stays there
+    spread = extrapolation_spread(cov, velocity, np.ones(2), 0.04, 0.25)
+    assert not lost_on_local(x, velocity, spread, dominant, local, evidence, 0.5, ~on_local, 1.0)[0]

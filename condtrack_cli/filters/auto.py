@@ -30,14 +30,24 @@ Rule, per point, before each step:
    sum, so that one measurement counts fully) is above ``lost_evidence``: its
    measurements said the local motion predicts it better, and a point moving
    with its neighbourhood (parallax, an independent object) stays with it.
-   Otherwise it coasts on the dynamics that best continues its last measured
-   step v (same metric, S = Sigma + q_floor I): the local one unless the
-   dominant one is closer to x + v. A covered point's neighbourhood moves with
-   the occluder, away from v, and before it was covered both motions predicted
-   it alike (mean e_k near 0), so it coasts on the dominant motion (CLF) and is
-   measured again around the right place. A point handed to the CLF, or lost
-   while on it, is predicted there by the dominant motion until the CLF's own
-   ``select`` (``clf.py``) finds the local motion better again.
+   Otherwise it asks which dynamics better continues its last measured step
+   v: c = (|x + v - mu_d|^2_S - |x + v - mu_l|^2_S) / 2, with
+   S = Sigma + (q_floor + r t^2 |v|^2 / 2) I. The extrapolation x + v is
+   itself uncertain: t frames after v was measured, the step has changed by
+   about t times one frame's change, and r, the relative change of a step
+   (pooled E|v_k - v_{k-1}|^2 / E|v_{k-1}|^2 of the points found twice
+   running), scales it with the point's speed, as parallax does (a static
+   point's image speed grows in proportion to itself as the camera nears
+   it). The point moves to the local motion when c > ``evidence_margin``, to
+   the dominant one when c < -``evidence_margin``, and stays where it is in
+   between (the hysteresis of rule 3). A covered point's neighbourhood jumps
+   to the occluder's motion, away from v by the occluder's speed relative to
+   the background, not by a share of the point's own speed, and before it was
+   covered both motions predicted it alike (mean e_k near 0); so it coasts on
+   the dominant motion (CLF) and is measured again around the right place.
+   A point handed to the CLF, or lost while on it, is predicted there by the
+   dominant motion until the CLF's own ``select`` (``clf.py``) finds the
+   local motion better again.
 The state is handed over: particles drawn from N(x, Sigma) one way, the
 particle mean and covariance the other way. The ``method`` of each row says
 which filter produced it. The rule does not assume which filter is the more
@@ -97,17 +107,33 @@ def closer_to_local(z: np.ndarray, dominant: np.ndarray, local: np.ndarray, spre
     return 0.5 * (np.einsum("ni,nij,nj->n", nu_d, inv, nu_d) - np.einsum("ni,nij,nj->n", nu_l, inv, nu_l))
 
 
+def extrapolation_spread(cov: np.ndarray, velocity: np.ndarray, steps: np.ndarray, relative_change: float,
+                         q_floor: float) -> np.ndarray:
+    """(n, 2, 2) metric of rule 4 for (n, 2, 2) covariances, (n, 2) last measured steps v and (n,) frames since.
+
+    cov + (q_floor + c t^2 |v|^2 / 2) I: the extrapolation x + v misses the next step by the change of
+    the point's step over t frames, about t times one frame's (a steady acceleration, as on parallax,
+    where a static point's image speed grows in proportion to itself); c = ``relative_change``, the
+    pooled E|v_k - v_{k-1}|^2 / E|v_{k-1}|^2 of the points found twice running.
+    """
+    extrapolation = 0.5 * relative_change * np.square(steps) * np.einsum("ni,ni->n", velocity, velocity)
+    return cov + (q_floor + extrapolation)[:, None, None] * np.eye(2)
+
+
 def lost_on_local(
     x: np.ndarray, velocity: np.ndarray, spread: np.ndarray, dominant: np.ndarray, local: np.ndarray,
-    mean_evidence: np.ndarray, lost_evidence: float,
+    mean_evidence: np.ndarray, lost_evidence: float, on_local: np.ndarray, margin: float,
 ) -> np.ndarray:
     """(n,) rule 4 for points not found: True where the point coasts on the local motion.
 
     x (n, 2) positions, velocity (n, 2) last measured steps (px/frame), spread
     (n, 2, 2) the metric, dominant and local (n, 2) the two predictions,
-    mean_evidence (n,) the mean e_k of the point's measurements.
+    mean_evidence (n,) the mean e_k of the point's measurements, on_local (n,)
+    bool the dynamics the point follows now, kept while the extrapolation x + v
+    is within ``margin`` (half squared Mahalanobis units) of telling them apart.
     """
-    return (mean_evidence > lost_evidence) | (closer_to_local(x + velocity, dominant, local, spread) > 0)
+    continued = closer_to_local(x + velocity, dominant, local, spread)
+    return (mean_evidence > lost_evidence) | np.where(np.abs(continued) <= margin, on_local, continued > 0)
 
 
 class AutoTracker(Tracker):
@@ -131,6 +157,7 @@ class AutoTracker(Tracker):
         self.evidence_weight = np.zeros(p)  #: sum of the averaging weights given so far (0 before a measurement)
         self.on_cnlf = np.zeros(p, bool)
         self.velocity = np.full((p, 2), np.nan)  #: px/frame, the point's last step that ended with a measurement
+        self._step_changes = np.zeros(2)  #: averaged sums of |v_k - v_{k-1}|^2 and of |v_{k-1}|^2 (px^2)
         self.store_segmentation = store_segmentation
         self.segmentation: list[np.ndarray] = []  #: per frame pair, (H, W) uint8 255 x robust weight
 
@@ -139,6 +166,12 @@ class AutoTracker(Tracker):
         estimate = super().step(frame, prev, motion)
         self.cnlf.end_frame()
         return estimate
+
+    @property
+    def relative_change(self) -> float:
+        """sum |v_k - v_{k-1}|^2 / sum |v_{k-1}|^2 over the points found twice running (averaged like the evidence)."""
+        change, speed = self._step_changes
+        return change / speed if speed > 0 else 0.0
 
     def reported_cov(self) -> np.ndarray:
         """The shared error model's covariance (``calibration.py``); ``cov`` is what is handed over."""
@@ -164,8 +197,11 @@ class AutoTracker(Tracker):
             x, cov = self.xy[index[lost]], self.cov[index[lost]]
             dominant, local = self._predictions(x, fit, field)
             mean_evidence = self.evidence[index[lost]] / self.evidence_weight[index[lost]]  # weight > 0: v is finite
-            want[lost] = lost_on_local(x, self.velocity[index[lost]], cov + self.q_floor * np.eye(2), dominant, local,
-                                       mean_evidence, self.settings.lost_evidence)
+            velocity = self.velocity[index[lost]]
+            steps = 1 + self.errors.coasted[index[lost]]  # frames since the step v was measured
+            spread = extrapolation_spread(cov, velocity, steps, self.relative_change, self.q_floor)
+            want[lost] = lost_on_local(x, velocity, spread, dominant, local, mean_evidence,
+                                       self.settings.lost_evidence, self.on_cnlf[index[lost]], margin)
         to_cnlf = index[want & ~self.on_cnlf[index]]
         to_clf = index[~want & self.on_cnlf[index]]
         if to_cnlf.size:
@@ -186,22 +222,32 @@ class AutoTracker(Tracker):
         if self.store_segmentation:
             self.segmentation.append(np.rint(fit.weights * 255).astype(np.uint8))
         self._route(index, frame, fit, field)
-        x_prev, cov_prev = self.xy[index].copy(), self.cov[index].copy()
+        x_prev, cov_prev, found_prev = self.xy[index].copy(), self.cov[index].copy(), self.visible[index].copy()
         for tracker, members in ((self.clf, index[~self.on_cnlf[index]]), (self.cnlf, index[self.on_cnlf[index]])):
             tracker.advance_members(members, prev, frame, motion)
             self._collect(members, tracker)
-        self._weigh(index, x_prev, cov_prev, fit, field)
+        self._weigh(index, x_prev, cov_prev, found_prev, fit, field)
 
-    def _weigh(self, index: np.ndarray, x_prev: np.ndarray, cov_prev: np.ndarray, fit, field) -> None:
-        """Rule 2: update the evidence and the last measured step of the points found on this step."""
+    def _weigh(self, index: np.ndarray, x_prev: np.ndarray, cov_prev: np.ndarray, found_prev: np.ndarray,
+               fit, field) -> None:
+        """Rule 2: update the evidence and the last measured step of the points found on this step.
+
+        Points also found on the step before add the change of their step to ``relative_change``.
+        """
         found = self.visible[index]
+        a = 1.0 / self.settings.integration_frames
+        self._step_changes *= 1 - a
         if not found.any():
             return
         idx = index[found]
-        self.velocity[idx] = self.xy[idx] - x_prev[found]
+        step = self.xy[idx] - x_prev[found]
+        again = found_prev[found] & np.isfinite(self.velocity[idx, 0])
+        change = step[again] - self.velocity[idx[again]]
+        previous = self.velocity[idx[again]]
+        self._step_changes += a * np.array([np.sum(change * change), np.sum(previous * previous)])
+        self.velocity[idx] = step
         dominant, local = self._predictions(x_prev[found], fit, field)
         spread = cov_prev[found] + self.R[idx] + self.q_floor * np.eye(2)
-        a = 1.0 / self.settings.integration_frames
         self.evidence[idx] = (1 - a) * self.evidence[idx] + a * closer_to_local(self.z[idx], dominant, local, spread)
         self.evidence_weight[idx] = (1 - a) * self.evidence_weight[idx] + a
 
