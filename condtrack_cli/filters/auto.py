@@ -56,13 +56,15 @@ accurate: a better CLF wins more points through (2) and (3).
 Measured with ``python -m condtrack_cli.evaluate.bench --versus-lk``
 (<delta_avg, issue 11 protocol, seed 0; "first" = the
 robust-weight rule of the first version, issue 11's table; auto / clf /
-cnlf): kt3dmoseg seq005 0.726 / 0.730 / 0.723 (first 0.671), seq009 0.726 /
-0.707 / 0.738 (0.523), seq011 0.914 / 0.907 / 0.913 (0.867), seq028 0.724 /
-0.691 / 0.728 (0.434), seq059 0.776 / 0.752 / 0.779 (0.704), dinosaur 0.852 /
+cnlf): kt3dmoseg seq005 0.728 / 0.730 / 0.723 (first 0.671), seq009 0.734 /
+0.707 / 0.738 (0.523), seq011 0.914 / 0.907 / 0.913 (0.867), seq028 0.726 /
+0.691 / 0.728 (0.434), seq059 0.778 / 0.752 / 0.779 (0.704), dinosaur 0.850 /
 0.850 / 0.850 (0.774), merton1 0.771 / 0.763 / 0.771 (0.347). Rule 4's
 evidence test: without it, points lost on parallax went to the dominant
 motion, whose error grows by tens of pixels a frame there (seq009 auto 0.712
--> 0.740 and seq028 0.656 -> 0.687 when it came, docs/departures.md).
+-> 0.740 and seq028 0.656 -> 0.687 when it came); its extrapolation metric
+and hysteresis: seq009 0.726 -> 0.734, occlusion sample 0.974 -> 0.985
+(docs/departures.md).
 With ``filter.smooth`` each point's contiguous run of CLF frames is
 RTS-smoothed and each run of CNLF frames FFBSm-smoothed (``smoother.py``); a
 handover ends a run, so the frame before it keeps its filtered estimate.
