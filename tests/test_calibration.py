@@ -42,31 +42,62 @@ def test_coasting_error_that_grows_linearly_is_covered_on_every_frame():
     model.begin_frame()
     model.update(index, zero, consistent, w, tiny, found, w, tiny, ~found, zero)  # measured: nu = w
     assert model.miss == pytest.approx(q, rel=0.05)
+    model.start(index, tiny)  # keeps the pooled q; clears what that match added (not this test's subject)
     for t in range(1, 9):
         model.update(index, zero, tiny, zero, tiny, ~found, zero, tiny, ~found, zero)
         assert 0.93 <= inside_95(t * w, model.reported) <= 0.97, t
 
 
-def test_a_match_found_in_a_gate_much_smaller_than_the_uncertainty_carries_that_uncertainty():
-    """A point coasting with the two motions 12 px apart, then found in a 1.4 px gate.
+def test_a_coasting_point_gets_the_disagreement_of_the_two_motions_in_every_direction():
+    """A point coasting one frame while the two motions predict 12 px apart along x.
 
-    The patch lies in the gate with probability about 1 - exp(-gamma s_gate / (2 s_before))
-    = 0.13, so the match is likely wrong: the reported covariance keeps most of the
-    coasting spread (the truth may be at either motion's prediction), and keeps it on later frames.
+    C = (t^2 q + |d|^2 / 2) I: the truth may be on the other motion's prediction
+    (12 px along x) or off both by as much across: either is inside the 95 % ellipse.
     """
     model = ErrorModel(1, 9.21)
     index = np.array([0])
     unit = np.eye(2)[None]
     model.start(index, 0.1 * unit)
     zero = np.zeros((1, 2))
-    coasting, found = np.array([False]), np.array([True])
+    coasting = np.array([False])
     model.update(index, zero, 0.1 * unit, zero, unit, coasting, zero, 0.1 * unit, coasting, np.array([[12.0, 0.0]]))
-    assert model.reported[0, 0, 0] == pytest.approx(72.1, abs=0.1)  # 0.1 + 12^2 / 2: the equal-weight mixture
-    model.update(index, zero, 0.1 * unit, zero, unit, found, zero, 0.05 * unit, coasting, zero)
-    after = model.reported[0].copy()
-    assert 50.0 < after[0, 0] < 72.1 and after[1, 1] < 1.0
-    model.update(index, zero, 0.1 * unit, zero, unit, found, zero, 0.05 * unit, coasting, zero)
-    assert model.reported[0, 0, 0] == pytest.approx(after[0, 0], rel=0.05)  # later matches cannot tell: it stays
+    np.testing.assert_allclose(model.reported[0], 72.1 * np.eye(2), atol=1e-9)  # 0.1 + 12^2 / 2 on both axes
+    assert inside_95(np.array([[12.0, 0.0], [0.0, 12.0]]), np.repeat(model.reported, 2, 0)) == 1.0
+
+
+def test_the_innovation_tells_a_right_match_from_a_wrong_one():
+    """100 points re-found after coasting one frame with the same prior w0 of a wrong match (C = 72 I against a 1.1 px^2 gate).
+
+    Point 0 is matched on its prediction, point 1 at the gate's edge, the 98 others
+    0.3 px off (they set the pooled lambda and q). P(wrong | nu) = w0 / (w0 + pi
+    gamma sqrt|S| N(nu; 0, F)), F = lambda S + t^2 q I: the match on the
+    prediction keeps little of the prior's spread, the one at the edge all of it;
+    the prior alone gave both w0 = 0.93.
+    """
+    gamma, n = 9.21, 100
+    model = ErrorModel(n, gamma)
+    index = np.arange(n)
+    unit = np.repeat(np.eye(2)[None], n, 0)
+    model.start(index, 0.1 * unit)
+    zero = np.zeros((n, 2))
+    none, every = np.zeros(n, bool), np.ones(n, bool)
+    model.update(index, zero, 0.1 * unit, zero, unit, none, zero, 0.1 * unit, none, np.tile([12.0, 0.0], (n, 1)))
+    z = np.tile([0.3, 0.0], (n, 1))
+    z[0], z[1] = 0.0, [np.sqrt(gamma * 1.1) * 0.99, 0.0]  # inside the gate nu^T S^-1 nu <= gamma, S = 1.1 I
+    model.begin_frame()
+    model.update(index, zero, 0.1 * unit, z, unit, every, 0.5 * z, 0.05 * unit, none, zero)
+    lam, S = model.scale, 1.1 * np.eye(2)
+    before = lam * 0.1 + model.miss + 72.0  # lambda s_pred + C' per axis (t = 1, d = 12 px)
+    prior = np.exp(-0.5 * gamma * 2.2 / (2 * before))
+    F = lam * S + model.miss * np.eye(2)
+    wrong = []
+    for nu in z[:2]:
+        density = np.exp(-0.5 * nu @ np.linalg.solve(F, nu)) / (2 * np.pi * np.sqrt(np.linalg.det(F)))
+        wrong.append(prior / (prior + np.pi * gamma * np.sqrt(np.linalg.det(S)) * density))
+        expected = 0.05 * max(lam, 1.0) * np.eye(2) + wrong[-1] * (before * np.eye(2) + np.outer(nu / 2, nu / 2))
+        np.testing.assert_allclose(model.reported[len(wrong) - 1], expected, rtol=1e-9)
+    assert prior == pytest.approx(0.93, abs=0.01)
+    assert wrong[0] < 0.05 and wrong[1] > 0.99
 
 
 @pytest.mark.parametrize("method", ["clf", "cnlf"])
@@ -98,24 +129,3 @@ def test_a_covered_point_dragged_by_its_occluder_gets_the_spread_of_the_two_moti
     result, _ = score_tracks(tracks, truth, "first")
     assert result["cov95"] >= 0.90
     assert result["cov_finite"] >= 0.95
-
-
-def test_a_match_where_the_two_motions_part_by_far_more_than_the_gate_carries_their_spread():
-    """A point found on every frame while the local and the dominant motion predict 12 px apart.
-
-    Before the match the patch may have followed either motion over this frame:
-    B = lambda Sigma + d d^T / 2 (d = 12 px along x) against a gate of tr S = 2.2 px^2,
-    so the match is wrong with probability exp(-gamma tr S / (2 tr B)) = 0.87 and
-    its spread stays (0.87 x 72 px^2 along x); across the disagreement nothing is added.
-    """
-    model = ErrorModel(1, 9.21)
-    index = np.array([0])
-    unit = np.eye(2)[None]
-    model.start(index, 0.1 * unit)
-    zero = np.zeros((1, 2))
-    found = np.array([True])
-    model.begin_frame()
-    model.update(index, zero, 0.1 * unit, zero, unit, found, zero, 0.05 * unit, ~found, np.array([[12.0, 0.0]]))
-    wrong = np.exp(-0.5 * 9.21 * 2.2 / 72.0)
-    assert model.reported[0, 0, 0] == pytest.approx(0.05 + wrong * 72.0, rel=1e-6)
-    assert model.reported[0, 1, 1] == pytest.approx(0.05, rel=1e-6)
