@@ -69,9 +69,9 @@ def test_the_innovation_tells_a_right_match_from_a_wrong_one():
     """100 points re-found after coasting one frame with the same prior w0 of a wrong match (C = 72 I against a 1.1 px^2 gate).
 
     Point 0 is matched on its prediction, point 1 at the gate's edge, the 98 others
-    0.3 px off (they set the pooled lambda and q). P(wrong | nu) = w0 / (w0 + pi
-    gamma sqrt|S| N(nu; 0, F)), F = lambda S + t^2 q I: the match on the
-    prediction keeps little of the prior's spread, the one at the edge all of it;
+    0.3 px off (they set the pooled lambda and q). P(wrong | nu) = w0 / (w0 + (1 - w0)
+    pi gamma sqrt|S| N(nu; 0, F)), F = lambda S + t^2 q I: the match on the
+    prediction keeps a third of the prior's spread, the one at the edge all of it;
     the prior alone gave both w0 = 0.93.
     """
     gamma, n = 9.21, 100
@@ -93,11 +93,11 @@ def test_the_innovation_tells_a_right_match_from_a_wrong_one():
     wrong = []
     for nu in z[:2]:
         density = np.exp(-0.5 * nu @ np.linalg.solve(F, nu)) / (2 * np.pi * np.sqrt(np.linalg.det(F)))
-        wrong.append(prior / (prior + np.pi * gamma * np.sqrt(np.linalg.det(S)) * density))
+        wrong.append(prior / (prior + (1 - prior) * np.pi * gamma * np.sqrt(np.linalg.det(S)) * density))
         expected = 0.05 * max(lam, 1.0) * np.eye(2) + wrong[-1] * (before * np.eye(2) + np.outer(nu / 2, nu / 2))
         np.testing.assert_allclose(model.reported[len(wrong) - 1], expected, rtol=1e-9)
     assert prior == pytest.approx(0.93, abs=0.01)
-    assert wrong[0] < 0.05 and wrong[1] > 0.99
+    assert wrong[0] < 0.4 and wrong[1] > 0.99  # prior odds 13:1 for a wrong match; on the prediction 1:2
 
 
 @pytest.mark.parametrize("method", ["clf", "cnlf"])

@@ -38,7 +38,7 @@ The model, per point, reported covariance = max(lambda, 1) Sigma + D + C:
   right match puts nu ~ N(0, F), F = lambda S + t^2 q I the one-step miss of the
   motion followed (t, q as in C, t the frames coasted before this one), a wrong
   one (the best SSD on something else) anywhere in the gate, density 1 / (pi
-  gamma sqrt|S|); so P(wrong | nu) = w0 / (w0 + pi gamma sqrt|S| N(nu; 0, F)),
+  gamma sqrt|S|); so P(wrong | nu) = w0 / (w0 + (1 - w0) pi gamma sqrt|S| N(nu; 0, F)),
   and D gains P(wrong | nu) (B + s s^T), s the step the update made. C' is C
   (below) with d including this frame's disagreement: a point found on every
   frame may still have followed either motion over this one, so where the local
@@ -155,11 +155,14 @@ class ErrorModel:
         # isotropic approximation: 1 - exp(-gamma s_gate / (2 s_before)); a match found when it does not is wrong.
         ratio = np.trace(S, axis1=1, axis2=2) / np.maximum(np.trace(before, axis1=1, axis2=2), 1e-12)
         # Given the innovation: a right match puts nu ~ N(0, F), F the one-step miss of the motion followed, a wrong
-        # one anywhere in the gate (area pi gamma sqrt|S|); P(wrong | nu) = expit(log prior odds - log(area N(nu; 0, F))).
+        # one anywhere in the gate (area pi gamma sqrt|S|); P(wrong | nu) = expit(log prior odds - log(area N(nu; 0, F))),
+        # prior odds w0 / (1 - w0).
         nu = np.where(found[:, None], z - predicted, 0.0)
         followed = max(lam, 1e-6) * S + (self.coasted[index] ** 2 * self.miss)[:, None, None] * np.eye(2)  # 1e-6: all nu = 0
         right = np.log(np.pi * self.gamma) + 0.5 * np.log(np.linalg.det(S)) + log_gauss2(nu, 0.0, followed)
-        wrong = np.where(found, expit(-0.5 * self.gamma * ratio - right), 0.0)
+        log_prior = -0.5 * self.gamma * ratio  # log w0; log(1 - w0) below, floored where w0 rounds to 1
+        log_odds = log_prior - np.log(np.maximum(-np.expm1(log_prior), 1e-300))
+        wrong = np.where(found, expit(log_odds - right), 0.0)
         step = xy - predicted
         self.drift[index] += wrong[:, None, None] * (before + np.einsum("ni,nj->nij", step, step))
         scaled = max(lam, 1.0) * sigma
