@@ -70,7 +70,7 @@ The error is heavy-tailed against the reported covariance (a mixture of right
 and wrong matches summarised by its second moment): on the seven shared real
 sets (``bench --versus-lk`` queries, ``condtrack eval --json``; clf, cnlf, auto)
 the 95 % ellipse held the truth on 0.93-0.98 of the rows and the 99 % one on
-0.96-0.99, but the 50 % one on 0.71-0.89: the core is too wide.
+0.96-0.99, but the 50 % one on 0.72-0.90: the core is too wide (bench/results.md).
 
 The filter's own state (its covariance, gate and gain) is unchanged, so positions
 are those of the filter without the model, bit for bit; ``filter.smooth`` smooths

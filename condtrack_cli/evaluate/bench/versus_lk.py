@@ -1,4 +1,7 @@
-"""The section against OpenCV LK maxLevel 3 (issue 11): real sets and synthetic scenes, with the done-when checks."""
+"""The section against OpenCV LK maxLevel 3 (issue 11): real sets and synthetic scenes, with the done-when checks.
+
+The same track files also give the coverage of each method's reported covariance (issue 12), with its targets.
+"""
 
 from __future__ import annotations
 
@@ -16,6 +19,13 @@ from condtrack_cli.io.read import read_tracks
 
 #: Methods of the real-video table, after the OpenCV LK baseline.
 VERSUS_LK_METHODS = ("auto", "clf", "cnlf", "stk")
+
+#: Methods whose rows carry a covariance: the coverage table of issue 12.
+COVARIANCE_METHODS = ("auto", "clf", "cnlf")
+
+#: Issue 12's calibration targets: (metric key, lowest, highest) share of the truth inside the ellipse.
+COVERAGE_TARGETS = (("cov50", 0.45, 0.55), ("cov90", 0.85, 0.95), ("cov95", 0.90, 0.98), ("cov99", 0.97, 1.0),
+                    ("cov_finite", 0.95, 1.0))
 
 #: Synthetic scenes of ``condtrack synth`` scored against LK, each at its defaults (seed 0).
 VERSUS_LK_SCENES = ("camera_motion", "occlusion", "ring", "illumination", "fast")
@@ -91,7 +101,9 @@ def real_video_table(work: Path, shared: Path, max_points: int = 300) -> list[st
     for name in kitti + [n for n in ("oxford_dinosaur",) if n in per_set]:
         clf, lk = _delta(per_set[name], "clf"), _delta(per_set[name], "lk")
         checks.append(_check(clf >= lk, f"{name}: clf {clf:.3f} >= LK {lk:.3f}"))
-    return lines + ["", "Done-when checks of issue 11 (real video):", ""] + checks
+    return lines + ["", "Done-when checks of issue 11 (real video):", ""] + checks + [
+        "", "Coverage of the reported covariance on the same runs (issue 12; `condtrack eval` keys):", ""
+    ] + coverage_table(per_set, "set")
 
 
 def _better_filter_checks(per_set: dict) -> list[str]:
@@ -101,6 +113,32 @@ def _better_filter_checks(per_set: dict) -> list[str]:
         auto, best = _delta(results, "auto"), max(_delta(results, "clf"), _delta(results, "cnlf"))
         checks.append(_check(auto >= best - 0.01, f"{name}: auto {auto:.3f} >= better filter {best:.3f} - 0.01"))
     return checks
+
+
+def coverage_table(per_set: dict, label: str) -> list[str]:
+    """Markdown: coverage, finite share and NEES of ``COVARIANCE_METHODS`` per set, then issue 12's targets.
+
+    per_set: {set: {method: (metrics dict, seconds)}} as ``score_versus_lk`` returns; label: the first column's name.
+    """
+    keys = ("cov50", "cov90", "cov95", "cov99", "cov_finite", "nees")
+    lines = [f"| {label} | method | " + " | ".join(keys) + " |", "|---|---|" + "---|" * len(keys)]
+    misses = {key: [] for key, _, _ in COVERAGE_TARGETS}
+    runs = 0
+    for name, results in per_set.items():
+        for method in COVARIANCE_METHODS:
+            metrics = results[method][0]
+            if metrics is None:
+                lines.append(f"| {name} | {method} | failed |")
+                continue
+            runs += 1
+            lines.append(f"| {name} | {method} | " + " | ".join(fmt(metrics[key]) for key in keys) + " |")
+            for key, low, high in COVERAGE_TARGETS:
+                if metrics[key] is None or not low <= metrics[key] <= high:
+                    misses[key].append(f"{name} {method} {fmt(metrics[key])}")
+    checks = [_check(not misses[key], f"{key} in [{low:.2f}, {high:.2f}] on {runs - len(misses[key])} of {runs} runs"
+                     + (f"; not on: {', '.join(misses[key])}" if misses[key] else ""))
+              for key, low, high in COVERAGE_TARGETS]
+    return lines + ["", f"Calibration targets of issue 12 ({label}s):", ""] + checks
 
 
 def synthetic_versus_lk_table(work: Path) -> list[str]:
@@ -136,7 +174,9 @@ def synthetic_versus_lk_table(work: Path) -> list[str]:
         auto, lk = _delta(results, "auto"), _delta(results, "lk")
         checks.append(_check(auto >= lk, f"{scene}: auto {auto:.3f} >= LK {lk:.3f}"))
     checks += _better_filter_checks(per_scene)
-    return lines + ["", "Done-when checks of issue 11 (synthetic scenes):", ""] + checks
+    return lines + ["", "Done-when checks of issue 11 (synthetic scenes):", ""] + checks + [
+        "", "Coverage of the reported covariance on the same runs (issue 12; `condtrack eval` keys):", ""
+    ] + coverage_table(per_scene, "scene")
 
 
 def versus_lk_section(work: Path, shared: Path = REPO.parent / "shared" / "data") -> list[str]:
