@@ -69,8 +69,8 @@ The model, per point, reported covariance = max(lambda, 1) Sigma + D + C:
 The error is heavy-tailed against the reported covariance (a mixture of right
 and wrong matches summarised by its second moment): on the seven shared real
 sets (``bench --versus-lk`` queries, ``condtrack eval --json``; clf, cnlf, auto)
-the 95 % ellipse held the truth on 0.93-0.98 of the rows and the 99 % one on
-0.96-0.99, but the 50 % one on 0.72-0.90: the core is too wide (bench/results.md).
+the 95 % ellipse held the truth on 0.933-0.985 of the rows and the 99 % one on
+0.962-0.992, but the 50 % one on 0.716-0.903: the core is too wide (bench/results.md).
 
 The filter's own state (its covariance, gate and gain) is unchanged, so positions
 are those of the filter without the model, bit for bit; ``filter.smooth`` smooths
