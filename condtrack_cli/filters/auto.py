@@ -244,8 +244,8 @@ class AutoTracker(Tracker):
         idx = index[found]
         step = self.xy[idx] - x_prev[found]
         again = found_prev[found] & np.isfinite(self.velocity[idx, 0])
-        change = step[again] - self.velocity[idx[again]]
         previous = self.velocity[idx[again]]
+        change = step[again] - previous
         self._step_changes += a * np.array([np.sum(change * change), np.sum(previous * previous)])
         self.velocity[idx] = step
         dominant, local = self._predictions(x_prev[found], fit, field)

@@ -158,7 +158,7 @@ class ErrorModel:
         # one anywhere in the gate (area pi gamma sqrt|S|); P(wrong | nu) = expit(log prior odds - log(area N(nu; 0, F))),
         # prior odds w0 / (1 - w0).
         nu = np.where(found[:, None], z - predicted, 0.0)
-        followed = max(lam, 1e-6) * S + (self.coasted[index] ** 2 * self.miss)[:, None, None] * np.eye(2)  # 1e-6: all nu = 0
+        followed = max(lam, 1e-6) * S + self._coasting(self.coasted[index], np.zeros_like(nu))  # 1e-6: all nu = 0
         right = np.log(np.pi * self.gamma) + 0.5 * np.log(np.linalg.det(S)) + log_gauss2(nu, 0.0, followed)
         log_prior = -0.5 * self.gamma * ratio  # log w0; log(1 - w0) below, floored where w0 rounds to 1
         log_odds = log_prior - np.log(np.maximum(-np.expm1(log_prior), 1e-300))
