@@ -513,3 +513,24 @@ def test_bench_coverage_table_checks_issue_12_targets():
     checks = [line for line in lines if line.startswith("- [")]
     assert checks[0] == "- [ ] FAIL: cov50 in [0.45, 0.55] on 4 of 5 runs; not on: b auto 0.800"
     assert all(line.startswith("- [x] pass") for line in checks[1:]) and len(checks) == 5
+
+
+def test_bench_meter_reads_the_command_s_own_peak_memory():
+    """``run_process`` (``bench/peak.py``): a command's peak RSS excludes the benchmark's memory at the fork.
+
+    While this process holds 300 MiB, a bare interpreter run through the meter
+    reads under 60 MiB, one that fills 200 MiB reads 200 MiB or more, and the
+    exit code and the last line of stderr come back.
+    """
+    import sys
+
+    from condtrack_cli.evaluate.bench.common import run_process
+
+    held = np.ones(300 * 2**20 // 8)  # pages touched: resident in this process
+    _, bare, code, _ = run_process([sys.executable, "-c", "pass"])
+    assert code == 0 and bare < 60, bare
+    _, filled, _, _ = run_process([sys.executable, "-c", "import numpy; a = numpy.ones(200 * 2**20 // 8)"])
+    assert filled >= 200, filled
+    _, _, code, message = run_process([sys.executable, "-c", "import sys; sys.exit('Error: no frame')"])
+    assert code == 1 and message == "Error: no frame"
+    assert held.sum() == held.size

@@ -2,7 +2,7 @@
 
 ``make bench`` runs ``python -m condtrack_cli.evaluate.bench --out bench/results.md``.
 Each method runs as its own ``condtrack track`` process (whole-process wall time
-and peak resident memory, read with ``os.wait4``), and is scored with the same
+and peak resident memory, read by the meter ``peak.py``), and is scored with the same
 code as ``condtrack eval``. Speed (issue 13) is a ratio to a plain OpenCV
 Lucas-Kanade script (``plain_lk.py``) run as its own process in the same run,
 on a 640x480 synthetic scene and a shared KITTI clip, followed by a profile of
@@ -15,7 +15,8 @@ least 3 observations, at most ``--max-points`` of them (every k-th track, k
 the smallest stride that fits) to bound the run time.
 
 ``--batch`` prints only the batch throughput table (``batch_table``);
-``--speed`` only the speed comparison and the profile.
+``--speed`` only the speed comparison and the profile; ``--memory`` only the
+peak memory by clip length (``memory_table``).
 
 ``--support SEQUENCE`` prints instead the dominant model's one-step prediction
 error by neighbourhood support (the measurement behind ``auto``'s thresholds),
@@ -36,7 +37,7 @@ from pathlib import Path
 
 from condtrack_cli.evaluate.bench.accuracy import accuracy_table, calibration_table, support_table
 from condtrack_cli.evaluate.bench.common import REPO
-from condtrack_cli.evaluate.bench.speed import batch_table, profile_table, speed_table
+from condtrack_cli.evaluate.bench.speed import batch_table, memory_table, profile_table, speed_table
 from condtrack_cli.evaluate.bench.versus_lk import versus_lk_section
 
 
@@ -70,6 +71,8 @@ def main() -> None:
     parser.add_argument("--batch", action="store_true", help="only print the batch throughput table")
     parser.add_argument("--speed", action="store_true",
                         help="only print the speed comparison with OpenCV LK and the profile table (issue 13)")
+    parser.add_argument("--memory", action="store_true",
+                        help="only print the peak memory of each method by clip length (issue 13)")
     parser.add_argument("--shared-data", type=Path, default=REPO.parent / "shared" / "data",
                         help="folder of the real sets for the section against OpenCV LK")
     parser.add_argument("--versus-lk", action="store_true",
@@ -88,6 +91,11 @@ def main() -> None:
         print("\n".join(speed_table(args.work, args.shared_data) + ["## Profile", ""]
                         + profile_table(args.work, args.shared_data)))
         return
+    if args.memory:
+        shutil.rmtree(args.work / "speed", ignore_errors=True)
+        args.work.mkdir(parents=True, exist_ok=True)
+        print("\n".join(memory_table(args.work)))
+        return
     if args.batch:
         shutil.rmtree(args.work / "batch", ignore_errors=True)
         print("\n".join(batch_table(args.work)))
@@ -97,6 +105,7 @@ def main() -> None:
     accuracy = accuracy_table(args.max_points, args.work)
     speed = speed_table(args.work, args.shared_data)
     profile = profile_table(args.work, args.shared_data)
+    memory = memory_table(args.work)
     batch = batch_table(args.work)
     versus_lk = versus_lk_section(args.work, args.shared_data)
     header = [
@@ -120,7 +129,7 @@ def main() -> None:
         "covP: share of the ground truth inside the predicted ellipse of level P % (ideal P/100); NEES: mean "
         "d^T C^-1 d over the rows with a finite covariance (ideal 2); finite: share of those rows.", "",
     ] + calibration_table(args.max_points, args.work)
-    text = "\n".join(header + accuracy + calibration + ["", "## Speed (issue 13)", ""] + speed + ["## Profile", ""] + profile + ["", "## Many clips", ""] + batch + [""] + versus_lk) + "\n"
+    text = "\n".join(header + accuracy + calibration + ["", "## Speed (issue 13)", ""] + speed + ["## Profile", ""] + profile + ["", "## Memory by clip length", ""] + memory + ["", "## Many clips", ""] + batch + [""] + versus_lk) + "\n"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     print(f"bench: wrote {args.out}", file=sys.stderr)

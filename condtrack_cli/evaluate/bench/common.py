@@ -2,19 +2,20 @@
 
 from __future__ import annotations
 
-import os
+import json
 import subprocess
 import sys
-import time
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from condtrack_cli.evaluate.groundtruth import GroundTruth, load_gt_csv
 
-
-
 REPO = Path(__file__).resolve().parents[3]
+
+#: The meter that times a command and reads its peak memory.
+METER = Path(__file__).resolve().with_name("peak.py")
 
 
 def gt_queries(truth: GroundTruth, min_observations: int = 3, max_points: int | None = None) -> np.ndarray:
@@ -39,14 +40,19 @@ def write_queries(rows: np.ndarray, path: Path) -> None:
 
 
 def run_process(command: list[str]) -> tuple[float, float, int, str]:
-    """Run ``command``: (wall seconds, peak RSS MiB, exit code, stderr's last line); stdout is discarded."""
-    started = time.perf_counter()
-    process = subprocess.Popen(command, stderr=subprocess.PIPE, stdout=subprocess.DEVNULL)
-    stderr = process.stderr.read().decode()
-    _, status, usage = os.wait4(process.pid, 0)
-    process.returncode = os.waitstatus_to_exitcode(status)
-    seconds = time.perf_counter() - started
-    return seconds, usage.ru_maxrss / 1024.0, process.returncode, (stderr.strip().splitlines() or [""])[-1]
+    """Run ``command``: (wall seconds, peak RSS MiB, exit code, stderr's last line); stdout is discarded.
+
+    The command runs under the meter ``peak.py`` (a standard-library process), which
+    times it and reads its peak RSS: read here, the peak would include this
+    benchmark's own memory at the fork (see ``peak.py``).
+    """
+    with tempfile.TemporaryDirectory() as folder:
+        result = Path(folder) / "peak.json"
+        process = subprocess.run([sys.executable, "-I", str(METER), str(result), *command],
+                                 stderr=subprocess.PIPE, stdout=subprocess.DEVNULL)
+        measured = json.loads(result.read_text())
+    stderr = process.stderr.decode()
+    return measured["seconds"], measured["peak_mib"], process.returncode, (stderr.strip().splitlines() or [""])[-1]
 
 
 def run_track(args: list[str]) -> tuple[float, float, int, str]:

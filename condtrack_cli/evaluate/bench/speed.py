@@ -20,25 +20,33 @@ SPEED_METHODS = ("clf", "auto", "cnlf")
 SPEED_CLIP = "kt3dmoseg_seq005_clip01"
 
 
-def speed_scenes(work: Path, shared: Path, n_points: int = 500, n_frames: int = 60,
-                 size: tuple[int, int] = (640, 480)) -> list[tuple[str, Path, Path]]:
-    """(title, frames folder, queries CSV) of the speed cases of issue 13.
+def synthetic_speed_scene(work: Path, n_points: int = 500, n_frames: int = 60,
+                          size: tuple[int, int] = (640, 480)) -> tuple[str, Path, Path]:
+    """(title, frames folder, queries CSV): the synthetic camera_motion scene (seed 1) at ``size``, ``n_frames`` frames.
 
-    The synthetic camera_motion scene at ``size`` with ``n_points`` uniformly drawn
-    points over ``n_frames`` frames (the points within 24 px of the border and those
-    the scene hides are still asked for), and the first 20 frames of the shared
-    ``SPEED_CLIP`` with the real-video queries of issue 11 (:func:`versus_lk_queries`)
-    on them, when the shared data is there.
+    ``n_points`` points drawn uniformly (seed 0) at least 24 px from the border on
+    frame 0; those that leave the frame or that the scene hides are still asked for.
     """
     from condtrack_cli.frames.synthetic import make_scene, write_scene
 
-    folder = write_scene(make_scene("camera_motion", seed=1, size=size, n_frames=n_frames), work / "speed")
+    stem = f"speed-{size[0]}x{size[1]}-{n_frames}"
+    folder = write_scene(make_scene("camera_motion", seed=1, size=size, n_frames=n_frames), work / "speed" / stem)
     rng = np.random.default_rng(0)
     margin = 24
     xy = np.column_stack([rng.uniform(margin, size[0] - margin, n_points), rng.uniform(margin, size[1] - margin, n_points)])
-    queries = work / "speed.queries.csv"
+    queries = work / f"{stem}.queries.csv"
     write_queries(np.column_stack([np.arange(n_points), np.zeros(n_points), xy]), queries)
-    scenes = [(f"synthetic camera_motion {size[0]}x{size[1]}, {n_frames} frames, {n_points} points", folder, queries)]
+    return f"synthetic camera_motion {size[0]}x{size[1]}, {n_frames} frames, {n_points} points", folder, queries
+
+
+def speed_scenes(work: Path, shared: Path) -> list[tuple[str, Path, Path]]:
+    """(title, frames folder, queries CSV) of the speed cases of issue 13.
+
+    :func:`synthetic_speed_scene` at its defaults (640 x 480, 60 frames, 500 points),
+    and the first 20 frames of the shared ``SPEED_CLIP`` with the real-video queries
+    of issue 11 (:func:`versus_lk_queries`) on them, when the shared data is there.
+    """
+    scenes = [synthetic_speed_scene(work)]
     clip = shared / SPEED_CLIP
     if (clip / "tracks.csv").is_file():
         rows = versus_lk_queries(load_gt_csv(clip / "tracks.csv"), oxford=False)
@@ -95,6 +103,43 @@ def speed_table(work: Path, shared: Path, repeats: int = 3) -> list[str]:
             lines.append(f"| {method} | {median:.2f} | {median / lk:.1f} | {peaks[method]:.0f} |")
             print(lines[-1], file=sys.stderr)
         lines.append("")
+    return lines
+
+
+#: Clip lengths (frames) of the memory table, and the largest growth issue 13 allows from the first to the last.
+MEMORY_LENGTHS = (100, 1000)
+MEMORY_GROWTH = 1.2
+
+
+def memory_table(work: Path, methods: tuple[str, ...] = SPEED_METHODS) -> list[str]:
+    """Markdown: peak RSS of each method on the 640 x 480 speed scene at each of ``MEMORY_LENGTHS`` frames (issue 13).
+
+    One ``condtrack track`` process per method and length (HDF5 output), measured by
+    ``peak.py``; the check is the longest clip's peak over the shortest's, at most
+    ``MEMORY_GROWTH``.
+    """
+    scenes = [synthetic_speed_scene(work, n_frames=length) for length in MEMORY_LENGTHS]
+    lines = [
+        "Peak RSS (MiB) of one `condtrack track` process (HDF5 output) on the synthetic camera_motion scene at "
+        f"640x480 with 500 points, by clip length; issue 13's target: the {MEMORY_LENGTHS[-1]}-frame clip at most "
+        f"{MEMORY_GROWTH}x the {MEMORY_LENGTHS[0]}-frame one.",
+        "",
+        "| method | " + " | ".join(f"{length} frames" for length in MEMORY_LENGTHS) + " | growth | check |",
+        "|---|" + "---|" * (len(MEMORY_LENGTHS) + 2),
+    ]
+    for method in methods:
+        peaks = []
+        for _, folder, queries in scenes:
+            _, rss, code, message = run_track([str(folder), "-p", str(queries), "-m", method,
+                                               "-o", str(work / f"memory.{method}.h5")])
+            peaks.append(f"failed: {message}" if code else rss)
+        if any(isinstance(peak, str) for peak in peaks):
+            lines.append(f"| {method} | " + " | ".join(str(peak) for peak in peaks) + " | | |")
+            continue
+        growth = peaks[-1] / peaks[0]
+        verdict = "pass" if growth <= MEMORY_GROWTH else "FAIL"
+        lines.append(f"| {method} | " + " | ".join(f"{peak:.0f}" for peak in peaks) + f" | {growth:.2f} | {verdict} |")
+        print(lines[-1], file=sys.stderr)
     return lines
 
 
