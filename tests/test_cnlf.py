@@ -188,3 +188,26 @@ def test_a_lost_point_on_parallax_keeps_the_local_motion_and_a_covered_one_leave
     # the hysteresis: the same ambiguous parallax point on the dominant motion stays there
     spread = extrapolation_spread(cov, velocity, np.ones(2), 0.04, 0.25)
     assert not lost_on_local(x, velocity, spread, dominant, local, evidence, 0.5, ~on_local, 1.0)[0]
+
+
+def test_cnlf_fixed_lag_path_estimate_is_the_paper_s_on_the_clip_cut_lag_frames_later():
+    """``path_lag`` L (ring sample, 30 frames): a frame's path estimate is fixed with the weights L frames later.
+
+    The estimate of frame j equals, bit for bit, the paper's (path_lag null) on the clip cut at frame
+    j + L; the last L + 1 frames equal the paper's on the whole clip; with L >= 29 nothing changes.
+    """
+    source, queries, _ = sample_inputs("ring")
+    frames = list(source)
+    lag = 4
+
+    def forward(config_lag, clip):
+        config = load_config(None, [f"filter.cnlf.path_lag={config_lag}"], method="cnlf")
+        return pipeline.run_pass(clip, source.info, config, queries, 3, None)
+
+    whole = forward("null", frames)
+    lagged = forward(lag, frames)
+    assert forward(len(frames) - 1, frames).xy.tobytes() == whole.xy.tobytes()
+    assert lagged.xy[:, -(lag + 1):].tobytes() == whole.xy[:, -(lag + 1):].tobytes()
+    assert not np.array_equal(lagged.xy, whole.xy, equal_nan=True)  # the lag does fix earlier frames
+    for j in (2, 14):
+        np.testing.assert_array_equal(lagged.xy[:, j], forward("null", frames[: j + lag + 1]).xy[:, j])

@@ -18,7 +18,13 @@ all started points and all their particles at once:
 - estimate: the trajectory is the weighted mean of the particle *paths*
   x_{0:k}^(i) with the final weights (the paper's 1/N is a typo for
   normalised weights), computed in ``finish``; the reported covariance on
-  each frame is the weighted covariance of that frame's particles.
+  each frame is the weighted covariance of that frame's particles. A
+  departure (``path_lag``, docs/departures.md): the estimate of frame j is
+  fixed with the weights of frame j + ``path_lag`` and its particles are then
+  dropped (a fixed-lag path estimate; at most ``path_lag`` + 1 frames of
+  paths are held), so that memory does not grow with the clip (the paths cost
+  P N 24 bytes a frame: 1.2 MB for 500 points). On a clip of at most
+  ``path_lag`` + 1 frames the estimate is the paper's, bit for bit.
 With ``filter.smooth`` the CNLF records each frame's weights and the dynamics
 N(mu^(i), Q^(i)) that moved the particles into it, and :meth:`CNLFTracker.smooth`
 replaces the estimate by the FFBSm smoother's (``smoother.py``).
@@ -49,6 +55,11 @@ class CNLFSettings(MeasuredFilterSettings):
     particles: int = Field(100, ge=1, le=10000, description="particles per point (the paper's N = 100)")
     ess_fraction: float = Field(0.5, gt=0, le=1, description="resample when the effective sample size falls below this x N")
     resampling: Literal["systematic", "residual"] = Field("systematic", description="resampling scheme")
+    path_lag: int | None = Field(
+        50, ge=0,
+        description="frames of particle paths kept: a frame's path estimate uses the weights this many frames later "
+                    "(or the clip's end); null keeps them all (the paper's estimate; memory grows with the clip)",
+    )
 
 
 def mixture_moments(log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -121,9 +132,13 @@ class CNLFTracker(Tracker):
         self.particles = np.full((p, n, 2), np.nan)
         self.log_w = np.full((p, n), -np.log(n))
         self.lineage_start = np.full(p, -1)  #: pass frame at which each point's particles were (re)drawn
-        self.particle_history: list[np.ndarray] = []  #: per frame, (P, N, 2) particles, NaN off the CNLF
+        self.particle_history: list[np.ndarray] = []  #: per kept frame, (P, N, 2) particles, NaN off the CNLF
         self.store_particles = store_particles
-        self.ancestor_history: list[np.ndarray] = []  #: per frame, (P, N) index of each particle's parent
+        self.ancestor_history: list[np.ndarray] = []  #: per kept frame, (P, N) index of each particle's parent
+        self.first_kept = 0  #: pass frame of particle_history[0]; the frames before have a fixed path estimate
+        self.fixed_paths: list[np.ndarray] = []  #: per frame before first_kept, (P, 2) path estimate, NaN off a lineage
+        #: frame k - path_lag is fixed and dropped after frame k, unless all are wanted (stored particles, the smoother)
+        self.lag = None if settings.path_lag is None or store_particles or smooth else settings.path_lag
         self.transitions = TransitionLog(p, log_w=(n,), mu=(n, 2), Q=(n, 2, 2), excess=(2, 2)) if smooth else None
 
     def step(self, frame: Frame, prev: Frame | None, motion: FrameMotion | None) -> FrameEstimate:
@@ -138,11 +153,15 @@ class CNLFTracker(Tracker):
         self.ancestors = np.broadcast_to(np.arange(self.settings.particles), self.log_w.shape).copy()
 
     def end_frame(self) -> None:
-        """After a frame: keep its particles and their parents for the path estimate."""
+        """After a frame: keep its particles and their parents for the path estimate; fix the frame that falls out."""
         self.particle_history.append(np.where((self.lineage_start >= 0)[:, None, None], self.particles, np.nan))
         self.ancestor_history.append(self.ancestors)
         if self.transitions is not None:
             self.transitions.record(len(self.particle_history) - 1, np.arange(len(self.log_w)), log_w=self.log_w.copy())
+        if self.lag is not None and len(self.particle_history) > self.lag:
+            self.fixed_paths.append(self._path_estimates(stop=1)[0])
+            del self.particle_history[0], self.ancestor_history[0]
+            self.first_kept += 1
 
     def adopt(self, index: np.ndarray, frame_index: int, xy: np.ndarray, cov: np.ndarray) -> None:
         """(Re)start points ``index`` with particles drawn from N(xy (n, 2), cov (n, 2, 2)), equal weights."""
@@ -229,18 +248,38 @@ class CNLFTracker(Tracker):
             return {}
         return {"particles/xy": np.stack(self.particle_history, axis=1).astype(np.float32)}
 
-    def path_means(self, xy: np.ndarray) -> np.ndarray:
-        """(P, F, 2) ``xy`` with the weighted path means on the frames of each point's current particle lineage."""
-        xy = xy.copy()
+    def _path_estimates(self, stop: int) -> list[np.ndarray]:
+        """(P, 2) weighted path means with the current weights on the kept frames first_kept .. first_kept + stop - 1.
+
+        Paper Fig. 2, T = sum_i x_{0:k}^(i) w_k^(i): each current particle's ancestor on the frame,
+        weighted by the particle's weight; NaN for the points whose current lineage started after the frame.
+        """
         weights = np.exp(self.log_w)[..., None]  # (P, N, 1)
         lineage = np.broadcast_to(np.arange(self.settings.particles), self.log_w.shape).copy()
         rows = np.arange(len(self.log_w))[:, None]
+        means = []
         for j in range(len(self.particle_history) - 1, -1, -1):
-            paths = self.particle_history[j][rows, lineage]  # (P, N, 2): each final particle's ancestor at frame j
-            inside = (self.lineage_start <= j) & (self.lineage_start >= 0)
-            with np.errstate(invalid="ignore"):
-                xy[inside, j] = (weights[inside] * paths[inside]).sum(axis=1)
+            if j < stop:
+                paths = self.particle_history[j][rows, lineage]  # (P, N, 2): each current particle's ancestor at j
+                inside = (self.lineage_start <= self.first_kept + j) & (self.lineage_start >= 0)
+                mean = np.full((len(self.log_w), 2), np.nan)
+                with np.errstate(invalid="ignore"):
+                    mean[inside] = (weights[inside] * paths[inside]).sum(axis=1)
+                means.append(mean)
             lineage = np.take_along_axis(self.ancestor_history[j], lineage, axis=1)
+        return means[::-1]
+
+    def path_means(self, xy: np.ndarray) -> np.ndarray:
+        """(P, F, 2) ``xy`` with the path estimates on the frames of each point's particle lineage.
+
+        The frames still kept get the weighted path means with the final weights; the earlier ones the
+        estimate fixed ``path_lag`` frames after them.
+        """
+        xy = xy.copy()
+        estimates = self.fixed_paths + self._path_estimates(stop=len(self.particle_history))
+        for j, mean in enumerate(estimates):
+            on = np.isfinite(mean[:, 0])
+            xy[on, j] = mean[on]
         return xy
 
 
