@@ -56,7 +56,7 @@ class CNLFSettings(MeasuredFilterSettings):
     ess_fraction: float = Field(0.5, gt=0, le=1, description="resample when the effective sample size falls below this x N")
     resampling: Literal["systematic", "residual"] = Field("systematic", description="resampling scheme")
     path_lag: int | None = Field(
-        50, ge=0,
+        10, ge=0,
         description="frames of particle paths kept: a frame's path estimate uses the weights this many frames later "
                     "(or the clip's end); null keeps them all (the paper's estimate; memory grows with the clip)",
     )
