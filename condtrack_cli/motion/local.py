@@ -144,6 +144,9 @@ DOMINANT_WEIGHT = 0.5
 #: shift's cost is under this fraction of the cost without a shift.
 SEARCH_GAIN = 0.5
 
+#: Most pixels of shifted frames per batch of the block-matching start (bounds its temporaries, ~40 B a pixel).
+SEARCH_BATCH_PIXELS = 2**18
+
 #: |r| thresholds (grey levels) whose window counts give the window's median |r|: FIRST_THRESHOLD 2^j.
 FIRST_THRESHOLD = 0.25
 THRESHOLDS = 10
@@ -628,40 +631,71 @@ def _searched_start(level: _Level, radius: int) -> np.ndarray:
     level px from the global motion (both supports get the same start). The
     cost of a shift is the zero-mean SSD per pixel of the window (a brightness
     offset between the frames is not motion), over pixels landing inside frame
-    k, at least half the window. A node keeps the shift of least cost where that
-    cost is under SEARCH_GAIN times the unshifted one, else 0: on weak texture
-    every shift costs about the same and the global motion is the better start.
-    The starts are then median-filtered over 3 x 3 nodes.
+    k, at least half the window. A node keeps the shift of least cost (the
+    first in raster order of (dy, dx) on a tie) where that cost is under
+    SEARCH_GAIN times the unshifted one, else 0: on weak texture every shift
+    costs about the same and the global motion is the better start. The starts
+    are then median-filtered over 3 x 3 nodes. The shifts are evaluated in
+    batches (``_shift_costs``): a shift of a small coarsest level is too little
+    work per OpenCV or numpy call.
     """
-    lay, work = level.lay, level.work
-    height, width = lay.shape
-    enough = 0.5 * lay.side**2
-    planes, warped = work.planes[:3], work.planes[3]
-    positions = work.positions
+    lay = level.lay
+    side = 2 * radius + 1
+    shifts = np.stack(np.meshgrid(np.arange(-radius, radius + 1), np.arange(-radius, radius + 1)), -1)
+    shifts = shifts.reshape(-1, 2).astype(np.float32)  # (dx, dy), dy-major
+    batch = max(1, SEARCH_BATCH_PIXELS // (lay.padded[0] * lay.padded[1]))
     best_cost = np.full(lay.node_shape, np.inf)
     best = np.zeros(lay.node_shape + (2,), np.float32)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            np.add(level.base, np.float32((dx, dy)), out=positions)
-            cv2.remap(level.cur[:, :, 0], positions, None, cv2.INTER_LINEAR, dst=warped, borderMode=cv2.BORDER_REPLICATE)
-            valid = planes[2]
-            np.copyto(valid, cv2.inRange(positions, (0, 0), (width - 1, height - 1)), casting="unsafe")
-            valid /= 255
-            valid[height:], valid[:, width:] = 0, 0  # the padding
-            np.multiply(np.subtract(warped, level.intensity, out=planes[0]), valid, out=planes[0])
-            np.multiply(planes[0], planes[0], out=planes[1])
-            sums = _window_sums(work.products.block_sums(planes), lay, ((0, 0),))[0, 0].astype(np.float64)
-            total, squares, count = sums[:, :, 0], sums[:, :, 1], sums[:, :, 2]
-            cost = np.where(count >= enough, (squares - total**2 / np.maximum(count, 1)) / np.maximum(count, 1), np.inf)
-            if dx == 0 and dy == 0:
-                unshifted = cost
-            better = cost < best_cost
-            best_cost = np.where(better, cost, best_cost)
-            best[better] = (dx, dy)
+    reference = np.ascontiguousarray(level.cur[:, :, 0])
+    for first in range(0, len(shifts), batch):
+        costs = _shift_costs(level, reference, shifts[first : first + batch])
+        index = costs.argmin(axis=0)
+        cost = np.take_along_axis(costs, index[None], 0)[0]
+        better = cost < best_cost
+        best_cost = np.where(better, cost, best_cost)
+        best[better] = shifts[first + index[better]]
+        if first <= radius * side + radius < first + batch:
+            unshifted = costs[radius * side + radius - first]
     moved = best_cost < SEARCH_GAIN * unshifted
     start = np.where(moved[:, :, None], best * np.float32(level.factor), np.float32(0))
     start = cv2.medianBlur(start, 3)  # per component over 3 x 3 nodes: an isolated false match does not start a node
     return np.dstack((start, start))
+
+
+def _shift_costs(level: _Level, reference: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """(S, hn, wn) float64 zero-mean SSD per pixel of each node's window under each of S shifts (S, 2) (level px).
+
+    inf where fewer than half the window's pixels land inside frame k. The S
+    shifted frames are stacked along the rows, and each shift's block sums get
+    blocks - 1 rows of zeros below them, so that the window sums of one shift
+    see zeros beyond its own blocks as they would alone (BORDER_CONSTANT).
+    """
+    lay = level.lay
+    height, width = lay.shape
+    rows, cols = lay.padded
+    count = len(shifts)
+    positions = (level.base[None] + shifts[:, None, None, :]).reshape(count * rows, cols, 2)
+    warped = cv2.remap(reference, positions, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    valid = cv2.inRange(positions, (0, 0), (width - 1, height - 1)).astype(np.float32).reshape(count, rows, cols)
+    valid /= 255
+    valid[:, height:], valid[:, :, width:] = 0, 0  # the padding
+    difference = np.subtract(warped.reshape(count, rows, cols), level.intensity)
+    difference *= valid
+    planes = [plane.reshape(count * rows, cols) for plane in (difference, difference * difference, valid)]
+    summed = cv2.merge(planes)
+    block = lay.block
+    if block > 1:
+        summed = cv2.resize(summed, (cols // block, count * rows // block), interpolation=cv2.INTER_AREA)
+    node_rows, node_cols = lay.node_shape
+    sums = np.zeros((count, node_rows + lay.blocks - 1, node_cols, 3), np.float32)
+    sums[:, : rows // block, : cols // block] = summed.reshape(count, rows // block, cols // block, 3)
+    sums *= block**2
+    windows = _window_sums(sums.reshape(-1, node_cols, 3), lay, ((0, 0),))[0, 0].astype(np.float64)
+    windows = windows.reshape(count, -1, node_cols, 3)[:, :node_rows]
+    total, squares, valid_count = windows[..., 0], windows[..., 1], windows[..., 2]
+    enough = 0.5 * lay.side**2
+    pixels = np.maximum(valid_count, 1)
+    return np.where(valid_count >= enough, (squares - total**2 / pixels) / pixels, np.inf)
 
 
 def local_field(prev: Pyramid, cur: Pyramid, fit: MotionFit, settings: RobustMotionSettings,
