@@ -457,6 +457,24 @@ class _Workspace:
         blocks = ((np.arange(0, height, self.scale_step) // lay.block)[:, None] * cols
                   + np.arange(0, width, self.scale_step) // lay.block)
         self.block_index = (blocks * (THRESHOLDS + 2)).astype(np.intp)  # first bin of each sampled pixel's block
+        self.search = None  # the block-matching start's batch arrays (``_SearchBatch``), made on the coarsest level
+
+
+class _SearchBatch:
+    """Work arrays of one batch of shifts of the block-matching start on one level layout (``_shift_costs``)."""
+
+    def __init__(self, lay: _Layout):
+        rows, cols = lay.padded
+        node_rows, node_cols = lay.node_shape
+        self.size = size = max(1, SEARCH_BATCH_PIXELS // (rows * cols))  # shifts per batch
+        self.positions = np.empty((size, rows, cols, 2), np.float32)
+        self.warped = np.empty((size * rows, cols), np.float32)
+        self.valid = np.empty((size, rows, cols), np.float32)
+        self.difference = np.empty((size, rows, cols), np.float32)
+        self.squares = np.empty((size, rows, cols), np.float32)
+        self.merged = np.empty((size * rows, cols, 3), np.float32)
+        # each shift's block sums and blocks - 1 rows of zeros below them; only the block sums are ever written
+        self.sums = np.zeros((size, node_rows + lay.blocks - 1, node_cols, 3), np.float32)
 
 
 class _Level:
@@ -643,7 +661,9 @@ def _searched_start(level: _Level, radius: int) -> np.ndarray:
     side = 2 * radius + 1
     shifts = np.stack(np.meshgrid(np.arange(-radius, radius + 1), np.arange(-radius, radius + 1)), -1)
     shifts = shifts.reshape(-1, 2).astype(np.float32)  # (dx, dy), dy-major
-    batch = max(1, SEARCH_BATCH_PIXELS // (lay.padded[0] * lay.padded[1]))
+    if level.work.search is None:
+        level.work.search = _SearchBatch(lay)
+    batch = level.work.search.size
     best_cost = np.full(lay.node_shape, np.inf)
     best = np.zeros(lay.node_shape + (2,), np.float32)
     reference = np.ascontiguousarray(level.cur[:, :, 0])
@@ -666,36 +686,42 @@ def _shift_costs(level: _Level, reference: np.ndarray, shifts: np.ndarray) -> np
     """(S, hn, wn) float64 zero-mean SSD per pixel of each node's window under each of S shifts (S, 2) (level px).
 
     inf where fewer than half the window's pixels land inside frame k. The S
-    shifted frames are stacked along the rows, and each shift's block sums get
-    blocks - 1 rows of zeros below them, so that the window sums of one shift
-    see zeros beyond its own blocks as they would alone (BORDER_CONSTANT).
+    (at most ``level.work.search.size``) shifted frames are stacked along the rows,
+    and each shift's block sums get blocks - 1 rows of zeros below them, so that
+    the window sums of one shift see zeros beyond its own blocks as they would
+    alone (BORDER_CONSTANT).
     """
-    lay = level.lay
+    lay, batch = level.lay, level.work.search
     height, width = lay.shape
     rows, cols = lay.padded
     count = len(shifts)
-    positions = (level.base[None] + shifts[:, None, None, :]).reshape(count * rows, cols, 2)
-    warped = cv2.remap(reference, positions, None, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-    valid = cv2.inRange(positions, (0, 0), (width - 1, height - 1)).astype(np.float32).reshape(count, rows, cols)
+    positions = np.add(level.base[None], shifts[:, None, None, :], out=batch.positions[:count])
+    positions = positions.reshape(count * rows, cols, 2)
+    warped = cv2.remap(reference, positions, None, cv2.INTER_LINEAR, dst=batch.warped[: count * rows],
+                       borderMode=cv2.BORDER_REPLICATE)
+    valid = batch.valid[:count]
+    np.copyto(valid.reshape(count * rows, cols), cv2.inRange(positions, (0, 0), (width - 1, height - 1)),
+              casting="unsafe")
     valid /= 255
     valid[:, height:], valid[:, :, width:] = 0, 0  # the padding
-    difference = np.subtract(warped.reshape(count, rows, cols), level.intensity)
+    difference = np.subtract(warped.reshape(count, rows, cols), level.intensity, out=batch.difference[:count])
     difference *= valid
-    planes = [plane.reshape(count * rows, cols) for plane in (difference, difference * difference, valid)]
-    summed = cv2.merge(planes)
+    squares = np.multiply(difference, difference, out=batch.squares[:count])
+    planes = [plane.reshape(count * rows, cols) for plane in (difference, squares, valid)]
+    summed = cv2.merge(planes, batch.merged[: count * rows])
     block = lay.block
     if block > 1:
         summed = cv2.resize(summed, (cols // block, count * rows // block), interpolation=cv2.INTER_AREA)
     node_rows, node_cols = lay.node_shape
-    sums = np.zeros((count, node_rows + lay.blocks - 1, node_cols, 3), np.float32)
+    sums = batch.sums[:count]
     sums[:, : rows // block, : cols // block] = summed.reshape(count, rows // block, cols // block, 3)
-    sums *= block**2
-    windows = _window_sums(sums.reshape(-1, node_cols, 3), lay, ((0, 0),))[0, 0].astype(np.float64)
-    windows = windows.reshape(count, -1, node_cols, 3)[:, :node_rows]
-    total, squares, valid_count = windows[..., 0], windows[..., 1], windows[..., 2]
+    sums[:, : rows // block, : cols // block] *= block**2
+    windows = _window_sums(sums.reshape(-1, node_cols, 3), lay, ((0, 0),))[0, 0]
+    windows = windows.reshape(count, -1, node_cols, 3)[:, :node_rows].astype(np.float64)
+    total, square_sum, valid_count = windows[..., 0], windows[..., 1], windows[..., 2]
     enough = 0.5 * lay.side**2
     pixels = np.maximum(valid_count, 1)
-    return np.where(valid_count >= enough, (squares - total**2 / pixels) / pixels, np.inf)
+    return np.where(valid_count >= enough, (square_sum - total**2 / pixels) / pixels, np.inf)
 
 
 def local_field(prev: Pyramid, cur: Pyramid, fit: MotionFit, settings: RobustMotionSettings,
