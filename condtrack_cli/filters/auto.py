@@ -264,7 +264,11 @@ class AutoTracker(Tracker):
         return self.cnlf.smooth(self.clf.smooth(tracks, tracks.method == method_code(self.clf.method)))
 
     def finish(self, history: list[FrameEstimate]) -> Tracks:
-        """Tracks whose CNLF segments still open at the end carry the particle path means."""
+        """Tracks whose CNLF frames carry the particle path means (``CNLFTracker.path_means``).
+
+        A frame gets the path mean fixed ``path_lag`` frames after it, or at the end, on the
+        segment open then; a segment the point left before that keeps its filtering estimates.
+        """
         tracks = super().finish(history)
         extras = self.cnlf.extras()
         if self.store_segmentation and self.segmentation:
