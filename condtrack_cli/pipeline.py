@@ -31,6 +31,7 @@ from condtrack_cli import registry
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.filters.interface import Tracker
+from condtrack_cli.frame_reports import FrameReports
 from condtrack_cli.motion.interface import FrameMotion, MotionStages
 from condtrack_cli.queries import detected_queries
 from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tracks
@@ -123,9 +124,21 @@ def run_pass(
     The motion of a frame pair is estimated when the tracker needs it and a point
     was started before the pair's second frame.
     """
+    with FrameReports() as history:
+        tracker = _track_frames(frames, info, config, queries, seed, on_frame, history)
+        tracks = tracker.finish(history)
+    return tracker.smooth(tracks) if config.smooth else tracks
+
+
+def _track_frames(frames: Iterable[np.ndarray], info: SequenceInfo, config: Config, queries: Queries | None,
+                  seed: int, on_frame: Callable[[int, FrameEstimate], None] | None, history: FrameReports) -> Tracker:
+    """Step the tracker through ``frames``, each frame's report appended to ``history``; the tracker.
+
+    The motion stage and the frames (work arrays, pyramids) are let go when this returns, before
+    the tracker stacks the pass.
+    """
     motion = build_stage(config, "motion")
     tracker = None
-    history: list[FrameEstimate] = []
     prev: Frame | None = None
     for index, image in enumerate(frames):
         frame = Frame(index, image)
@@ -141,9 +154,8 @@ def run_pass(
         pair_motion = frame_motion(motion, prev, frame, tracker.needs_local_motion) if moved else None
         history.append(tracker.step(frame, prev, pair_motion))
         if on_frame is not None:
-            on_frame(index, history[-1])
+            on_frame(index, history.last)
         prev = frame
     if tracker is None:
         raise CondtrackError(f"{info.input}: the input has no frame")
-    tracks = tracker.finish(history)
-    return tracker.smooth(tracks) if config.smooth else tracks
+    return tracker

@@ -83,6 +83,7 @@ from condtrack_cli.filters.calibration import ErrorModel
 from condtrack_cli.filters.clf import CLFSettings, CLFTracker, linear_dynamics
 from condtrack_cli.filters.cnlf import CNLFSettings, CNLFTracker, inverse2
 from condtrack_cli.filters.reference import ReferenceMatcher
+from condtrack_cli.frame_reports import FrameReports
 from condtrack_cli.measure.interface import Measurer
 from condtrack_cli.motion.interface import FrameMotion
 from condtrack_cli.motion.state_noise import StateNoise
@@ -263,7 +264,7 @@ class AutoTracker(Tracker):
         """Each point's CLF frames smoothed by the CLF's RTS, its CNLF frames by the CNLF's FFBSm."""
         return self.cnlf.smooth(self.clf.smooth(tracks, tracks.method == method_code(self.clf.method)))
 
-    def finish(self, history: list[FrameEstimate]) -> Tracks:
+    def finish(self, history: FrameReports) -> Tracks:
         """Tracks whose CNLF frames carry the particle path means (``CNLFTracker.path_means``).
 
         A frame gets the path mean fixed ``path_lag`` frames after it, or at the end, on the

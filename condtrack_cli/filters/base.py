@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from condtrack_cli.frame_reports import FIELDS, FrameReports
 from condtrack_cli.motion.interface import FrameMotion
 from condtrack_cli.registry import method_code
 from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tracks
@@ -89,12 +90,6 @@ class Tracker:
         """``tracks`` (from :meth:`finish`) with xy and cov smoothed over the whole pass (``filter.smooth``)."""
         raise NotImplementedError(f"{self.method} has no smoother")
 
-    def finish(self, history: list[FrameEstimate]) -> Tracks:
+    def finish(self, history: FrameReports) -> Tracks:
         """Stack the per-frame reports into (P, F, ...) arrays."""
-        def stack(name: str) -> np.ndarray:
-            return np.stack([getattr(h, name) for h in history], axis=1)
-
-        return Tracks(
-            queries=self.queries, xy=stack("xy"), cov=stack("cov"), visible=stack("visible"),
-            method=stack("method"), z=stack("z"), R=stack("R"),
-        )
+        return Tracks(queries=self.queries, **{name: history.stack(name) for name in FIELDS})

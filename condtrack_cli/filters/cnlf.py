@@ -44,6 +44,7 @@ from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, sample_gauss2
 from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMatcher
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise
 from condtrack_cli.filters.smoother import TransitionLog, error_excess, particle_smoother, weighted_moments
+from condtrack_cli.frame_reports import FrameReports
 from condtrack_cli.measure.interface import Measurer
 from condtrack_cli.motion.interface import FrameMotion
 from condtrack_cli.motion.model import displacement
@@ -222,7 +223,7 @@ class CNLFTracker(Tracker):
         if self.transitions is not None:
             self.transitions.record(frame.index, index, excess=self.errors.reported[index] - self.cov[index])
 
-    def finish(self, history: list[FrameEstimate]) -> Tracks:
+    def finish(self, history: FrameReports) -> Tracks:
         """The trajectory estimate: the weighted mean of the particle paths with the final weights."""
         tracks = super().finish(history)
         return dataclasses.replace(tracks, xy=self.path_means(tracks.xy), extras=self.extras())

@@ -20,6 +20,7 @@ from typing import Mapping, Protocol
 
 import numpy as np
 
+from condtrack_cli.frame_reports import FrameReports
 from condtrack_cli.measure.interface import Measurer
 from condtrack_cli.motion.interface import FrameMotion
 from condtrack_cli.motion.state_noise import StateNoise
@@ -43,7 +44,7 @@ class Tracker(Protocol):
         ``frame`` (its ``local_field`` only when ``needs_local_motion``), else None.
         """
 
-    def finish(self, history: list[FrameEstimate]) -> Tracks:
+    def finish(self, history: FrameReports) -> Tracks:
         """The pass's (P, F, ...) tracks from the F per-frame reports."""
 
     def smooth(self, tracks: Tracks) -> Tracks:

@@ -1,0 +1,61 @@
+"""Per-frame reports kept on disk in blocks (issue 13, memory flat in the clip's length): the arrays come back bit for bit."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import condtrack_cli as ct
+from condtrack_cli import frame_reports
+from condtrack_cli.frame_reports import FIELDS, FrameReports
+from condtrack_cli.types import FrameEstimate
+
+
+def random_report(rng: np.random.Generator, n_points: int) -> FrameEstimate:
+    """A report with every field filled, NaN and inf included, in the dtypes trackers use."""
+    xy = rng.normal(size=(n_points, 2)) * 100
+    xy[0] = np.nan
+    cov = rng.normal(size=(n_points, 2, 2))
+    cov[1] = np.inf
+    return FrameEstimate(xy=xy, cov=cov, visible=rng.random(n_points) < 0.5, z=rng.normal(size=(n_points, 2)),
+                         R=rng.normal(size=(n_points, 2, 2)), method=rng.integers(-1, 3, n_points).astype(np.int8))
+
+
+def test_reports_written_in_blocks_stack_back_bit_for_bit():
+    rng = np.random.default_rng(0)
+    reports = [random_report(rng, 5) for _ in range(11)]
+    with FrameReports(block_frames=4) as history:  # two blocks on disk and three reports pending
+        for report in reports:
+            history.append(report)
+        folder = Path(history._folder.name)
+        assert len(list(folder.glob("*.npy"))) == 2 * len(FIELDS)
+        assert len(history) == 11 and history.last is reports[-1]
+        for name in FIELDS:
+            expected = np.stack([getattr(r, name) for r in reports], axis=1)
+            stacked = history.stack(name)
+            assert stacked.dtype == expected.dtype and stacked.shape == expected.shape
+            assert stacked.tobytes() == expected.tobytes(), name
+    assert not folder.exists()  # close removes the blocks
+
+
+@pytest.mark.parametrize("method", ["clf", "auto"])
+def test_a_pass_longer_than_a_block_tracks_as_one_held_in_memory(monkeypatch, shifted_folder, method):
+    """6 frames in 4-frame blocks give the same bytes as with every report in memory (auto: the CNLF's path means)."""
+    folder, shifts = shifted_folder
+    queries = np.array([[0, 100.0, 80.0], [0, 200.0, 150.0], [2, 150.0 + shifts[2, 0], 120.0 + shifts[2, 1]]])
+    in_memory = ct.track(folder, queries=queries, method=method).result
+    monkeypatch.setattr(frame_reports, "BLOCK_FRAMES", 4)
+    saved = []
+    save = np.save
+    monkeypatch.setattr(np, "save", lambda path, array: (saved.append(path), save(path, array)))
+    spilled = ct.track(folder, queries=queries, method=method).result
+    assert len(saved) == len(FIELDS)  # one block of the forward pass; the backward one (frames 2..0) stays in memory
+    for name in FIELDS:
+        assert getattr(spilled, name).tobytes() == getattr(in_memory, name).tobytes(), name
+
+
+def test_stacking_no_report_is_an_error():
+    with FrameReports() as history, pytest.raises(ValueError, match="no frame"):
+        history.stack("xy")
