@@ -251,23 +251,27 @@ def _interpolate(nodes: np.ndarray, maps: np.ndarray, out: np.ndarray | None = N
 
 
 class _Planes:
-    """Block sums of ``count`` float32 planes of one level's padded shape (``_Layout.padded``).
+    """Block sums of float32 planes of one level's padded shape (``_Layout.padded``).
 
     The planes are interleaved in groups of up to four channels, as ``cv2.resize``
-    wants them; the arrays are kept between passes (fresh pages are slow).
+    wants them, one group at a time: one interleaved buffer per group width is
+    kept between passes and calls (fresh pages are slow).
     """
 
-    def __init__(self, lay: _Layout, count: int):
+    def __init__(self, lay: _Layout):
         self.lay = lay
-        self.groups = [np.empty(lay.padded + (min(4, count - start),), np.float32) for start in range(0, count, 4)]
+        self.buffers: dict[int, np.ndarray] = {}  # channels -> (h_padded, w_padded, channels) float32
 
     def block_sums(self, planes: list[np.ndarray]) -> np.ndarray:
         """(hn, wn, count) float32 sums of each (h_padded, w_padded) plane over the layout's blocks."""
         block = self.lay.block
         rows, cols = self.lay.node_shape
         sums = np.zeros((rows, cols, len(planes)), np.float32)
-        for start, group in zip(range(0, len(planes), 4), self.groups):
-            group = cv2.merge(planes[start : start + 4], group)
+        for start in range(0, len(planes), 4):
+            members = planes[start : start + 4]
+            if len(members) not in self.buffers:
+                self.buffers[len(members)] = np.empty(self.lay.padded + (len(members),), np.float32)
+            group = cv2.merge(members, self.buffers[len(members)])
             if block > 1:
                 group = cv2.resize(group, (group.shape[1] // block, group.shape[0] // block),
                                    interpolation=cv2.INTER_AREA)
@@ -379,8 +383,10 @@ def _normal_equations(sums: np.ndarray, lay: _Layout, model: str) -> tuple[list,
     monomials = _MONOMIALS[model]
     m = len(monomials)
     orders = sorted({(ai + aj, bi + bj) for ai, bi in monomials for aj, bj in monomials})
-    moments = {order: np.ascontiguousarray(np.moveaxis(moment, 2, 0), np.float64)  # (10, hn, wn) contiguous
-               for order, moment in _window_sums(sums, lay, orders).items()}
+    moments = _window_sums(sums, lay, orders)
+    for order, moment in moments.items():  # each float32 moment is let go as soon as its float64 copy is made
+        moments[order] = np.ascontiguousarray(np.moveaxis(moment, 2, 0), np.float64)  # (10, hn, wn) contiguous
+    del moment
     product = {(0, 0): 0, (0, 1): 2, (1, 0): 2, (1, 1): 4}  # g_c g_c' -> first channel of its support pair
     matrix = [[None] * (2 * m) for _ in range(2 * m)]
     rhs = [None] * (2 * m)
@@ -444,9 +450,7 @@ class _Workspace:
     def __init__(self, lay: _Layout):
         height, width = lay.padded
         self.maps = lay.maps_to(lay.padded, lay.level)  # node coordinates of the level's pixels
-        self.products = _Planes(lay, 10)  # w g g^T (3) and w g y (2), each on (dominant, other) pixels
-        self.totals = _Planes(lay, 6)
-        self.prev = np.empty((height, width, 3), np.float32)
+        self.block_sums = _Planes(lay).block_sums  # of the pass's products and of the chosen support's totals
         self.residual = np.empty((height, width, 4), np.float32)
         self.base = np.empty((height, width, 2), np.float32)
         self.positions = np.empty((height, width, 2), np.float32)
@@ -490,7 +494,7 @@ class _Level:
         self.work = work = workspaces[self.lay]
         rows, cols = self.lay.padded
         pad = (0, rows - height, 0, cols - width)
-        prev = cv2.copyMakeBorder(prev, *pad, cv2.BORDER_CONSTANT, dst=work.prev)
+        prev = cv2.copyMakeBorder(prev, *pad, cv2.BORDER_CONSTANT, dst=work.warped)  # free until a pass warps
         self.intensity, self.gx, self.gy = cv2.split(prev, work.planes[19:22])
         flow = cv2.multiply(global_flow[:: self.factor, :: self.factor], 1 / self.factor)
         self.base = cv2.copyMakeBorder(flow, *pad, cv2.BORDER_REPLICATE, dst=work.base)
@@ -597,7 +601,7 @@ def _level_pass(level: _Level, residual: np.ndarray, settings: RobustMotionSetti
     planes = level.work.planes[9:19]
     for index, (a, b) in enumerate(((wgx, gx), (wgx, gy), (wgy, gy), (wgx, y), (wgy, y))):
         _split_into(planes, 2 * index, np.multiply(a, b, out=uy), level.dominant_f)
-    sums = level.work.products.block_sums(planes)
+    sums = level.work.block_sums(planes)
     matrix, rhs = _normal_equations(sums, lay, local_model(settings, lay.level))
     lower = _cholesky(_with_ridge(matrix, np.square(scale / RESIDUAL_PRIOR_STD)))
     theta = _backward(lower, _forward(lower, rhs))
@@ -626,7 +630,7 @@ def _choose(systems: _Systems, residual: np.ndarray, level: _Level,
     for index, plane in enumerate((weights * (systems.gx * systems.gx + systems.gy * systems.gy),
                                    weights * after * after, weights)):
         _split_into(planes, 2 * index, plane, level.dominant_f)
-    totals = np.moveaxis(_window_sums(level.work.totals.block_sums(planes), level.lay, ((0, 0),))[0, 0], 2, 0
+    totals = np.moveaxis(_window_sums(level.work.block_sums(planes), level.lay, ((0, 0),))[0, 0], 2, 0
                          ).astype(np.float64)
     energy, squares, weight_sum = totals[0:2], totals[2:4], totals[4:6]
     chosen = energy[0] < energy[1]  # False: dominant, True: non-dominant
@@ -745,6 +749,7 @@ def local_field(prev: Pyramid, cur: Pyramid, fit: MotionFit, settings: RobustMot
         else:
             residual = _interpolate(nodes, node_layout.maps_to(level.lay.padded, index), level.work.residual)
         for _ in range(passes(index)):
+            systems = None  # the last pass's systems go before this pass makes its own (memory)
             systems = _level_pass(level, residual, settings)
             nodes, node_layout = systems.residual_nodes(), level.lay
             residual = _interpolate(nodes, level.work.maps, level.work.residual)
