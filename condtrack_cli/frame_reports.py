@@ -8,7 +8,8 @@ every ``block_frames`` reports are stacked into (P, block, ...) arrays and writt
 as ``.npy`` files to a temporary folder (``tempfile``: ``TMPDIR``), and read back
 only when the tracker stacks the whole pass (``Tracker.finish``), after the
 pipeline has let the motion stage's work arrays go. The arrays read back are
-the arrays reported, bit for bit.
+the arrays reported, bit for bit. A folder that cannot be written is a
+:class:`CondtrackError` naming it.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
+from condtrack_cli.errors import CondtrackError
 from condtrack_cli.types import FrameEstimate
 
 #: The fields of a report, each (P, ...) per frame.
@@ -54,10 +56,15 @@ class FrameReports:
         self._pending.append(report)
         self.last = report
         if len(self._pending) == self.block_frames:
-            if self._folder is None:
-                self._folder = tempfile.TemporaryDirectory(prefix="condtrack-reports-")
-            for name in FIELDS:
-                np.save(self._path(len(self._blocks), name), self._stack_pending(name))
+            try:
+                if self._folder is None:
+                    self._folder = tempfile.TemporaryDirectory(prefix="condtrack-reports-")
+                for name in FIELDS:
+                    np.save(self._path(len(self._blocks), name), self._stack_pending(name))
+            except OSError as error:
+                raise CondtrackError(
+                    f"temporary folder {tempfile.gettempdir()}: cannot write the per-frame results "
+                    f"({error.strerror or error}); set TMPDIR to a writable folder with space") from error
             self._blocks.append(len(self._pending))
             self._pending = []
 

@@ -7,8 +7,10 @@ no stage reads the config or another stage's settings. Per frame pair k-1 -> k
 the pipeline estimates the motion the filter asks for (the global fit, and the
 local field only when ``tracker.needs_local_motion``) and passes it to
 ``tracker.step(frame, prev, motion)``. It streams frames, keeps only the
-previous and the current one (each carries its pyramid, built once), and hands
-each frame's report to an optional ``on_frame`` callback (progress display).
+previous and the current one (each carries its pyramid, built once), keeps the
+frames' reports on disk in blocks (``frame_reports.py``: memory flat in the
+clip's length) and hands each to an optional ``on_frame`` callback (progress
+display); the motion stage's work arrays go before the pass's reports are stacked.
 
 A point queried at frame k > 0 is tracked forward from k and backward from k:
 the backward pass runs the same filter on the time-reversed frames k_max .. 0

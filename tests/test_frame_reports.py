@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 
 import condtrack_cli as ct
 from condtrack_cli import frame_reports
+from condtrack_cli.errors import CondtrackError
 from condtrack_cli.frame_reports import FIELDS, FrameReports
 from condtrack_cli.types import FrameEstimate
 
@@ -54,6 +56,15 @@ def test_a_pass_longer_than_a_block_tracks_as_one_held_in_memory(monkeypatch, sh
     assert len(saved) == len(FIELDS)  # one block of the forward pass; the backward one (frames 2..0) stays in memory
     for name in FIELDS:
         assert getattr(spilled, name).tobytes() == getattr(in_memory, name).tobytes(), name
+
+
+def test_an_unwritable_temporary_folder_is_a_one_line_error(monkeypatch, tmp_path, shifted_folder):
+    folder, _ = shifted_folder
+    missing = tmp_path / "no-such-folder"
+    monkeypatch.setattr(tempfile, "tempdir", str(missing))
+    monkeypatch.setattr(frame_reports, "BLOCK_FRAMES", 2)
+    with pytest.raises(CondtrackError, match=f"temporary folder {missing}: cannot write the per-frame results"):
+        ct.track(folder, queries=np.array([[0, 100.0, 80.0]]), method="clf")
 
 
 def test_stacking_no_report_is_an_error():
