@@ -8,25 +8,62 @@ every ``block_frames`` reports are stacked into (P, block, ...) arrays and writt
 as ``.npy`` files to a temporary folder (``tempfile``: ``TMPDIR``), and read back
 only when the tracker stacks the whole pass (``Tracker.finish``), after the
 pipeline has let the motion stage's work arrays go. The arrays read back are
-the arrays reported, bit for bit. A folder that cannot be written is a
-:class:`CondtrackError` naming it.
+the arrays reported, bit for bit. A pass's stacked tracks can wait on disk the
+same way (``park``) while the other pass runs. A folder that cannot be written
+is a :class:`CondtrackError` naming it.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.types import FrameEstimate
+from condtrack_cli.types import FrameEstimate, Tracks
 
 #: The fields of a report, each (P, ...) per frame.
 FIELDS = ("xy", "cov", "visible", "z", "R", "method")
 
 #: Reports stacked into one block on disk (500 points: 3 MB a block).
 BLOCK_FRAMES = 64
+
+
+def temporary_folder() -> tempfile.TemporaryDirectory:
+    """A new temporary folder for arrays waiting on disk; a CondtrackError naming ``TMPDIR``'s folder when it fails."""
+    try:
+        return tempfile.TemporaryDirectory(prefix="condtrack-")
+    except OSError as error:
+        raise _write_error(error) from error
+
+
+def save(path: Path, array: np.ndarray) -> None:
+    """``array`` to the ``.npy`` file ``path``; a CondtrackError when it cannot be written (disk full)."""
+    try:
+        np.save(path, array)
+    except OSError as error:
+        raise _write_error(error) from error
+
+
+def park(tracks: Tracks, folder: Path) -> Tracks:
+    """``tracks`` with its (P, F, ...) arrays written to ``folder`` and read back memory-mapped, read-only.
+
+    While a pass's tracks wait for the other pass (``pipeline.run``), their pages are
+    the file's, which the system can drop; ``extras`` stay as they are.
+    """
+    parked = {}
+    for name in FIELDS:
+        path = folder / f"parked.{name}.npy"
+        save(path, getattr(tracks, name))
+        parked[name] = np.load(path, mmap_mode="r")
+    return dataclasses.replace(tracks, **parked)
+
+
+def _write_error(error: OSError) -> CondtrackError:
+    return CondtrackError(f"temporary folder {tempfile.gettempdir()}: cannot write the per-frame results "
+                          f"({error.strerror or error}); set TMPDIR to a writable folder with space")
 
 
 class FrameReports:
@@ -56,15 +93,10 @@ class FrameReports:
         self._pending.append(report)
         self.last = report
         if len(self._pending) == self.block_frames:
-            try:
-                if self._folder is None:
-                    self._folder = tempfile.TemporaryDirectory(prefix="condtrack-reports-")
-                for name in FIELDS:
-                    np.save(self._path(len(self._blocks), name), self._stack_pending(name))
-            except OSError as error:
-                raise CondtrackError(
-                    f"temporary folder {tempfile.gettempdir()}: cannot write the per-frame results "
-                    f"({error.strerror or error}); set TMPDIR to a writable folder with space") from error
+            if self._folder is None:
+                self._folder = temporary_folder()
+            for name in FIELDS:
+                save(self._path(len(self._blocks), name), self._stack_pending(name))
             self._blocks.append(len(self._pending))
             self._pending = []
 

@@ -25,6 +25,7 @@ fusing them across it.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
@@ -33,7 +34,7 @@ from condtrack_cli import registry
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.filters.interface import Tracker
-from condtrack_cli.frame_reports import FrameReports
+from condtrack_cli.frame_reports import FrameReports, park, temporary_folder
 from condtrack_cli.motion.interface import FrameMotion, MotionStages
 from condtrack_cli.queries import detected_queries
 from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tracks
@@ -88,8 +89,12 @@ def run(
     if last == 0:
         return forward
     mirrored = Queries(queries.point_id, last - queries.frame, queries.xy)
-    backward = run_pass(source.reversed_from(last), info, config, mirrored, seed + 1, on_frame)
-    return merge_backward(forward, backward)
+    with temporary_folder() as folder:
+        forward = park(forward, Path(folder))  # waits on disk while the backward pass runs (memory flat in length)
+        backward = run_pass(source.reversed_from(last), info, config, mirrored, seed + 1, on_frame)
+        merged = merge_backward(forward, backward)
+        del forward  # the memory maps go before their files
+    return merged
 
 
 def merge_backward(forward: Tracks, backward: Tracks) -> Tracks:
@@ -101,6 +106,7 @@ def merge_backward(forward: Tracks, backward: Tracks) -> Tracks:
     before = np.arange(forward.xy.shape[1])[None, :] < forward.queries.frame[:, None]  # (P, F)
 
     def combine(ahead: np.ndarray, behind: np.ndarray) -> np.ndarray:
+        ahead = np.asarray(ahead)  # a parked (memory-mapped) array as a plain one: the result is in memory
         padded = np.full_like(ahead, np.nan if ahead.dtype.kind == "f" else 0)
         padded[:, : last + 1] = behind[:, ::-1]
         mask = before.reshape(before.shape + (1,) * (ahead.ndim - 2))

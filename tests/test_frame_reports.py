@@ -11,8 +11,8 @@ import pytest
 import condtrack_cli as ct
 from condtrack_cli import frame_reports
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.frame_reports import FIELDS, FrameReports
-from condtrack_cli.types import FrameEstimate
+from condtrack_cli.frame_reports import FIELDS, FrameReports, park
+from condtrack_cli.types import FrameEstimate, Queries, Tracks
 
 
 def random_report(rng: np.random.Generator, n_points: int) -> FrameEstimate:
@@ -53,9 +53,24 @@ def test_a_pass_longer_than_a_block_tracks_as_one_held_in_memory(monkeypatch, sh
     save = np.save
     monkeypatch.setattr(np, "save", lambda path, array: (saved.append(path), save(path, array)))
     spilled = ct.track(folder, queries=queries, method=method).result
-    assert len(saved) == len(FIELDS)  # one block of the forward pass; the backward one (frames 2..0) stays in memory
+    # one block of the forward pass (the backward one, frames 2..0, stays in memory), then the forward tracks parked
+    assert [Path(path).name for path in saved] == [f"000000.{name}.npy" for name in FIELDS] + [
+        f"parked.{name}.npy" for name in FIELDS]
     for name in FIELDS:
         assert getattr(spilled, name).tobytes() == getattr(in_memory, name).tobytes(), name
+
+
+def test_parked_tracks_are_their_arrays_read_back_from_disk(tmp_path):
+    rng = np.random.default_rng(1)
+    reports = [random_report(rng, 4) for _ in range(3)]
+    queries = Queries(np.arange(4), np.zeros(4, np.int64), rng.normal(size=(4, 2)))
+    tracks = Tracks(queries=queries, **{name: np.stack([getattr(r, name) for r in reports], axis=1) for name in FIELDS})
+    parked = park(tracks, tmp_path)
+    for name in FIELDS:
+        array = getattr(parked, name)
+        assert isinstance(array, np.memmap) and not array.flags.writeable
+        assert array.dtype == getattr(tracks, name).dtype and array.tobytes() == getattr(tracks, name).tobytes()
+    assert parked.queries is tracks.queries
 
 
 def test_an_unwritable_temporary_folder_is_a_one_line_error(monkeypatch, tmp_path, shifted_folder):
