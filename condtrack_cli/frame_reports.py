@@ -76,7 +76,7 @@ class FrameReports:
         self.block_frames = BLOCK_FRAMES if block_frames is None else block_frames
         self.last: FrameEstimate | None = None
         self._pending: list[FrameEstimate] = []  # reports not yet written, at most block_frames - 1
-        self._blocks: list[int] = []  # frames in each block written, in order
+        self._written = 0  # blocks written, block_frames reports each
         self._folder: tempfile.TemporaryDirectory | None = None  # made at the first block written
 
     def __enter__(self) -> "FrameReports":
@@ -86,7 +86,7 @@ class FrameReports:
         self.close()
 
     def __len__(self) -> int:
-        return sum(self._blocks) + len(self._pending)
+        return self._written * self.block_frames + len(self._pending)
 
     def append(self, report: FrameEstimate) -> None:
         """Add the next frame's report; every ``block_frames`` reports go to disk as one block."""
@@ -96,8 +96,8 @@ class FrameReports:
             if self._folder is None:
                 self._folder = temporary_folder()
             for name in FIELDS:
-                save(self._path(len(self._blocks), name), self._stack_pending(name))
-            self._blocks.append(len(self._pending))
+                save(self._path(self._written, name), self._stack_pending(name))
+            self._written += 1
             self._pending = []
 
     def stack(self, name: str) -> np.ndarray:
@@ -106,12 +106,10 @@ class FrameReports:
             raise ValueError("no frame was reported")
         sample = getattr(self.last, name)
         out = np.empty((sample.shape[0], len(self)) + sample.shape[1:], sample.dtype)
-        start = 0
-        for block, frames in enumerate(self._blocks):
-            out[:, start : start + frames] = np.load(self._path(block, name))
-            start += frames
+        for block in range(self._written):
+            out[:, block * self.block_frames : (block + 1) * self.block_frames] = np.load(self._path(block, name))
         if self._pending:
-            out[:, start:] = self._stack_pending(name)
+            out[:, self._written * self.block_frames :] = self._stack_pending(name)
         return out
 
     def close(self) -> None:
@@ -119,7 +117,7 @@ class FrameReports:
         if self._folder is not None:
             self._folder.cleanup()
             self._folder = None
-        self._blocks, self._pending, self.last = [], [], None
+        self._written, self._pending, self.last = 0, [], None
 
     def _stack_pending(self, name: str) -> np.ndarray:
         return np.stack([getattr(report, name) for report in self._pending], axis=1)

@@ -384,9 +384,8 @@ def _normal_equations(sums: np.ndarray, lay: _Layout, model: str) -> tuple[list,
     m = len(monomials)
     orders = sorted({(ai + aj, bi + bj) for ai, bi in monomials for aj, bj in monomials})
     moments = _window_sums(sums, lay, orders)
-    for order, moment in moments.items():  # each float32 moment is let go as soon as its float64 copy is made
-        moments[order] = np.ascontiguousarray(np.moveaxis(moment, 2, 0), np.float64)  # (10, hn, wn) contiguous
-    del moment
+    for order in moments:  # each float32 moment is let go as soon as its float64 copy replaces it
+        moments[order] = np.ascontiguousarray(np.moveaxis(moments[order], 2, 0), np.float64)  # (10, hn, wn)
     product = {(0, 0): 0, (0, 1): 2, (1, 0): 2, (1, 1): 4}  # g_c g_c' -> first channel of its support pair
     matrix = [[None] * (2 * m) for _ in range(2 * m)]
     rhs = [None] * (2 * m)
