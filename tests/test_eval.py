@@ -59,6 +59,8 @@ EXPECTED = {
         # counted ellipses: p0 f2 (m2 = 2.25 under I), p0 f3 (m2 = 100 under 0.01 I), p1 f3 (infinite: inside);
         # chi2 quantiles 1.386 (50%), 4.605 (90%), 5.991 (95%), 9.210 (99%)
         "cov50": 1 / 3, "cov90": 2 / 3, "cov95": 2 / 3, "cov99": 2 / 3, "nees": (2.25 + 100) / 2, "cov_finite": 2 / 3,
+        # m2 sorted 0 (infinite), 2.25, 100: k = 100 / 5.991 puts all 3 inside at 95 %; at 50 %: m2 <= 23.1 (2 of 3)
+        "cov50_rescaled": 2 / 3,
         "n_points": 2, "n_frames": 4,
     },
     "strided": {
@@ -70,6 +72,7 @@ EXPECTED = {
         "OA": 2 / 5, "median_err": 2.25,
         # p1 f0 has no prediction: not counted, and not finite (2 finite of 4 GT-visible scored rows)
         "cov50": 1 / 3, "cov90": 2 / 3, "cov95": 2 / 3, "cov99": 2 / 3, "nees": (2.25 + 100) / 2, "cov_finite": 0.5,
+        "cov50_rescaled": 2 / 3,
         "n_points": 2, "n_frames": 4,
     },
 }
@@ -122,7 +125,7 @@ def test_distance_on_threshold_is_not_within():
     visible = np.ones((1, 4), bool)
     result = tapvid_metrics(pred, visible, None, gt, visible, visible, np.array([0]), "first")
     assert [result[f"pts_within_{x}"] for x in (1, 2, 4, 8, 16)] == pytest.approx([0, 0, 1 / 3, 2 / 3, 2 / 3])
-    assert all(result[key] is None for key in ("cov50", "cov90", "cov95", "cov99", "nees", "cov_finite"))
+    assert all(result[key] is None for key in ("cov50", "cov90", "cov95", "cov99", "nees", "cov_finite", "cov50_rescaled"))
 
 
 def test_all_visible_gt_leaves_visibility_metrics_null():
@@ -471,6 +474,42 @@ def test_calibrated_gaussian_errors_give_nominal_coverage_and_nees():
         assert result[f"cov{round(100 * level)}"] == pytest.approx(level, abs=0.012)
     assert result["nees"] == pytest.approx(2.0, abs=0.08)  # std of the mean of chi2(2): 2 / sqrt(n) = 0.014
     assert result["cov_finite"] == 1.0
+    assert result["cov50_rescaled"] == pytest.approx(0.5, abs=0.015)
+
+
+def test_cov50_rescaled_tells_a_wrong_scale_from_a_heavy_tail():
+    """``cov50_rescaled``: 0.5 for Gaussian errors under covariances 4x too wide (only the scale is off), above
+    0.5 for a mixture with the same second moment: 90 % of the errors 1/4 as wide, 10 % 6.75x as wide.
+
+    Once scaled so that 95 % of the frames lie in their 95 % ellipse, the scale is set by the wide tenth and the
+    narrow core falls inside the 50 % ellipse (expected values from the chi-square CDF, 2 dof: 1 - exp(-q / 2)).
+    """
+    rng = np.random.default_rng(5)
+    n = 40000
+    cov = np.repeat(np.eye(2)[None], n, 0)
+    ones = np.ones((1, n + 1), bool)
+
+    def metrics(error):
+        pred = np.concatenate([np.zeros((1, 1, 2)), error[None]], axis=1)
+        pred_cov = np.concatenate([np.eye(2)[None, None], cov[None]], axis=1)
+        return tapvid_metrics(pred, ones, pred_cov, np.zeros((1, n + 1, 2)), ones, ones, np.array([0]), "first")
+
+    too_wide = metrics(0.5 * rng.standard_normal((n, 2)))  # error cov I / 4 under a reported I
+    assert too_wide["cov50"] == pytest.approx(1 - np.exp(-2 * np.log(2) * 2), abs=0.01)  # 0.9375: not calibrated
+    assert too_wide["cov50_rescaled"] == pytest.approx(0.5, abs=0.012)  # binomial std 0.0025
+    wide = rng.random(n) < 0.1
+    heavy = rng.standard_normal((n, 2)) * np.where(wide, np.sqrt(6.75), 0.5)[:, None]  # second moment 0.9/4 + 0.675
+    result = metrics(heavy)
+    # The 95 % quantile q of m2 (the mixture 0.9 chi2 x 0.25 + 0.1 chi2 x 6.75), by bisection on its CDF
+    # 0.9 (1 - exp(-q / 0.5)) + 0.1 (1 - exp(-q / 13.5)); the 50 % ellipse at that scale is q chi2(0.5) / chi2(0.95).
+    lo, hi = 0.0, 100.0
+    for _ in range(80):
+        q = (lo + hi) / 2
+        lo, hi = (q, hi) if 0.9 * -np.expm1(-q / 0.5) + 0.1 * -np.expm1(-q / 13.5) < 0.95 else (lo, q)
+    q50 = q * np.log(2.0) / -np.log(0.05)
+    expected = 0.9 * -np.expm1(-q50 / 0.5) + 0.1 * -np.expm1(-q50 / 13.5)
+    assert result["cov50_rescaled"] == pytest.approx(expected, abs=0.012)
+    assert expected > 0.7
 
 
 def test_cli_plot_writes_png(files, tmp_path):
@@ -503,12 +542,13 @@ def test_bench_coverage_table_checks_issue_12_targets():
     """
     from condtrack_cli.evaluate.bench.versus_lk import coverage_table
 
-    calibrated = {"cov50": 0.5, "cov90": 0.9, "cov95": 0.95, "cov99": 0.99, "cov_finite": 1.0, "nees": 2.0}
+    calibrated = {"cov50": 0.5, "cov90": 0.9, "cov95": 0.95, "cov99": 0.99, "cov_finite": 1.0, "nees": 2.0,
+                  "cov50_rescaled": 0.5}
     wide = dict(calibrated, cov50=0.8)
     per_set = {"a": {m: (calibrated, 1.0) for m in ("auto", "clf", "cnlf")},
                "b": {"auto": (wide, 1.0), "clf": (calibrated, 1.0), "cnlf": (None, "exit 1")}}
     lines = coverage_table(per_set, "set")
-    assert "| a | clf | 0.500 | 0.900 | 0.950 | 0.990 | 1.000 | 2.000 |" in lines
+    assert "| a | clf | 0.500 | 0.900 | 0.950 | 0.990 | 1.000 | 2.000 | 0.500 |" in lines
     assert "| b | cnlf | failed |" in lines
     checks = [line for line in lines if line.startswith("- [")]
     assert checks[0] == "- [ ] FAIL: cov50 in [0.45, 0.55] on 4 of 5 runs; not on: b auto 0.800"

@@ -67,6 +67,9 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
                     predicted ellipse of level P% (P = 50, 90, 95, 99; ideal P/100)
       nees          mean d^T C^-1 d over those with a finite covariance (ideal 2)
       cov_finite    fraction of GT-visible scored positions with a finite covariance
+      cov50_rescaled  cov50 after scaling every covariance by the one factor
+                    that puts cov95 at 0.95 (0.5: only the scale is off; above:
+                    the errors are heavier-tailed than the covariances)
     --plot FILE.png draws the coverage at every level against the level (a
     calibrated covariance follows the diagonal) and the histogram of the
     Mahalanobis distances of the errors against the calibrated (Rayleigh) law.

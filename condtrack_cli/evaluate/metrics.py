@@ -42,6 +42,14 @@ Additions of ours:
   position and a finite positive-definite covariance (the share on which the
   coverage says something; an unbounded covariance passes every coverage test).
   Null without covariances or without GT-visible scored frames.
+- ``cov50_rescaled``: ``cov50`` once every covariance is multiplied by the one
+  factor k that makes ``cov95`` 0.95 (the least k with at least 95 % of the
+  counted frames inside their 95 % ellipse). It separates a wrong scale from a
+  wrong shape: if the errors are Gaussian with the covariances' shape, whatever
+  their scale, it is 0.5; above 0.5 the errors are heavier-tailed than their
+  covariances (a tight core and a far tail), which no inflation factor can
+  calibrate at 50 % and 95 % at once. Null when no frame is counted or when
+  k would be 0 (95 % of the counted frames unbounded or exact).
 
 Null values: a metric that cannot be computed is ``None`` (JSON ``null``). In
 particular, when the scored GT has no occluded frame, ``OA``, ``AJ`` and the
@@ -83,7 +91,7 @@ METRIC_KEYS = (
     + tuple(f"jaccard_{x}" for x in THRESHOLDS)
     + ("median_err",)
     + tuple(coverage_key(p) for p in COVERAGE_LEVELS)
-    + ("nees", "cov_finite", "n_points", "n_frames")
+    + ("nees", "cov_finite", "cov50_rescaled", "n_points", "n_frames")
 )
 
 
@@ -151,11 +159,11 @@ def coverage_inside(error: np.ndarray, cov: np.ndarray, level: float = 0.95) -> 
 
 
 def calibration_metrics(error: np.ndarray, cov: np.ndarray | None, rows: np.ndarray) -> dict[str, float | None]:
-    """The coverage keys, ``nees`` and ``cov_finite`` (module docstring) over the ``rows`` (P, F) bool.
+    """The coverage keys, ``nees``, ``cov_finite`` and ``cov50_rescaled`` (module docstring) over the ``rows`` (P, F) bool.
 
     error: (P, F, 2) predicted minus GT (NaN where no prediction); cov: (P, F, 2, 2) or None (all null).
     """
-    keys = [coverage_key(p) for p in COVERAGE_LEVELS] + ["nees", "cov_finite"]
+    keys = [coverage_key(p) for p in COVERAGE_LEVELS] + ["nees", "cov_finite", "cov50_rescaled"]
     if cov is None:
         return dict.fromkeys(keys)
     unbounded, bounded, m2 = normalised_error(error, cov)
@@ -166,7 +174,21 @@ def calibration_metrics(error: np.ndarray, cov: np.ndarray | None, rows: np.ndar
     }
     out["nees"] = float(m2[bounded].mean()) if bounded.any() else None
     out["cov_finite"] = _ratio(bounded.sum(), rows.sum())
+    out["cov50_rescaled"] = rescaled_coverage(np.where(bounded, m2, 0.0)[unbounded | bounded], 0.5, 0.95)
     return out
+
+
+def rescaled_coverage(m2: np.ndarray, level: float, anchor: float) -> float | None:
+    """Coverage at ``level`` once the covariances are scaled by the least k giving coverage >= ``anchor``.
+
+    m2: (n,) d^T C^-1 d of the counted frames (0 for an unbounded covariance: inside at every scale).
+    Scaling C by k divides m2 by k; k = the ceil(anchor n)-th smallest m2 / chi2.ppf(anchor, 2).
+    None when n = 0 or k = 0.
+    """
+    if not m2.size:
+        return None
+    k = np.sort(m2)[math.ceil(anchor * m2.size) - 1] / chi2_2dof(anchor)
+    return float(np.mean(m2 <= k * chi2_2dof(level))) if k > 0 else None
 
 
 def tapvid_metrics(

@@ -116,11 +116,11 @@ def _better_filter_checks(per_set: dict) -> list[str]:
 
 
 def coverage_table(per_set: dict, label: str) -> list[str]:
-    """Markdown: coverage, finite share and NEES of ``COVARIANCE_METHODS`` per set, then issue 12's targets.
+    """Markdown: coverage, finite share, NEES and cov50_rescaled of ``COVARIANCE_METHODS`` per set, then issue 12's targets.
 
     per_set: {set: {method: (metrics dict, seconds)}} as ``score_versus_lk`` returns; label: the first column's name.
     """
-    keys = ("cov50", "cov90", "cov95", "cov99", "cov_finite", "nees")
+    keys = ("cov50", "cov90", "cov95", "cov99", "cov_finite", "nees", "cov50_rescaled")
     lines = [f"| {label} | method | " + " | ".join(keys) + " |", "|---|---|" + "---|" * len(keys)]
     misses = {key: [] for key, _, _ in COVERAGE_TARGETS}
     runs = 0
