@@ -484,6 +484,8 @@ def test_cov50_rescaled_tells_a_wrong_scale_from_a_heavy_tail():
     Once scaled so that 95 % of the frames lie in their 95 % ellipse, the scale is set by the wide tenth and the
     narrow core falls inside the 50 % ellipse (expected values from the chi-square CDF, 2 dof: 1 - exp(-q / 2)).
     """
+    from scipy.optimize import brentq
+
     rng = np.random.default_rng(5)
     n = 40000
     cov = np.repeat(np.eye(2)[None], n, 0)
@@ -495,19 +497,17 @@ def test_cov50_rescaled_tells_a_wrong_scale_from_a_heavy_tail():
         return tapvid_metrics(pred, ones, pred_cov, np.zeros((1, n + 1, 2)), ones, ones, np.array([0]), "first")
 
     too_wide = metrics(0.5 * rng.standard_normal((n, 2)))  # error cov I / 4 under a reported I
-    assert too_wide["cov50"] == pytest.approx(1 - np.exp(-2 * np.log(2) * 2), abs=0.01)  # 0.9375: not calibrated
+    # m2 = chi2 / 4: P(chi2 <= 4 x 2 ln 2) = 1 - 2^-4 = 0.9375, not calibrated
+    assert too_wide["cov50"] == pytest.approx(1 - 2.0**-4, abs=0.01)
     assert too_wide["cov50_rescaled"] == pytest.approx(0.5, abs=0.012)  # binomial std 0.0025
     wide = rng.random(n) < 0.1
     heavy = rng.standard_normal((n, 2)) * np.where(wide, np.sqrt(6.75), 0.5)[:, None]  # second moment 0.9/4 + 0.675
     result = metrics(heavy)
-    # The 95 % quantile q of m2 (the mixture 0.9 chi2 x 0.25 + 0.1 chi2 x 6.75), by bisection on its CDF
-    # 0.9 (1 - exp(-q / 0.5)) + 0.1 (1 - exp(-q / 13.5)); the 50 % ellipse at that scale is q chi2(0.5) / chi2(0.95).
-    lo, hi = 0.0, 100.0
-    for _ in range(80):
-        q = (lo + hi) / 2
-        lo, hi = (q, hi) if 0.9 * -np.expm1(-q / 0.5) + 0.1 * -np.expm1(-q / 13.5) < 0.95 else (lo, q)
-    q50 = q * np.log(2.0) / -np.log(0.05)
-    expected = 0.9 * -np.expm1(-q50 / 0.5) + 0.1 * -np.expm1(-q50 / 13.5)
+    # m2 is the mixture 0.9 chi2 x 0.25 + 0.1 chi2 x 6.75, of CDF 0.9 (1 - exp(-q / 0.5)) + 0.1 (1 - exp(-q / 13.5));
+    # q95 its 95 % quantile, and the 50 % ellipse at that scale is q95 chi2(0.5) / chi2(0.95).
+    cdf = lambda q: 0.9 * -np.expm1(-q / 0.5) + 0.1 * -np.expm1(-q / 13.5)  # noqa: E731
+    q95 = brentq(lambda q: cdf(q) - 0.95, 0.0, 100.0, xtol=1e-12)
+    expected = cdf(q95 * np.log(2.0) / -np.log(0.05))
     assert result["cov50_rescaled"] == pytest.approx(expected, abs=0.012)
     assert expected > 0.7
 
