@@ -32,7 +32,7 @@ from condtrack_cli.settings import StageSettings
 NAMED_SECTIONS = ("frames", "detect", "motion", "measure")
 
 #: Implementation used when a section gives no ``name``.
-DEFAULT_NAMES = {"frames": "auto", "detect": "shi_tomasi", "motion": "robust", "measure": "ssd"}
+DEFAULT_NAMES = {"frames": "auto", "detect": "shi_tomasi", "motion": "dis", "measure": "ssd"}
 
 #: Method used when neither the config nor ``-m`` names one.
 DEFAULT_METHOD = "auto"
@@ -40,7 +40,7 @@ DEFAULT_METHOD = "auto"
 SECTION_DOCS = {
     "frames": "how frames are read (folder of images or video)",
     "detect": "where points come from when no queries file is given",
-    "motion": "robust parametric motion between consecutive frames (paper §5.1)",
+    "motion": "motion between consecutive frames: local field, its noise and the global fit (paper §5.1)",
     "measure": "SSD matching of the reference patch and R_k from the correlation surface (§5.2)",
     "filter": "the tracking method and each filter's parameters",
     "output": "the CSV and HDF5 writers",

@@ -75,8 +75,9 @@ def test_queries_are_tracked_forward_and_backward_from_their_frame(shifted_folde
     np.testing.assert_array_equal(tracks.queries.frame, [0, 2])
     assert np.isfinite(tracks.xy).all()  # tracked backward from frame 2 to 0 as well
     truth = start[::-1][:, None] + shifts[None]  # point 3 starts at start[1], point 7 at start[0]
-    # 0.3 px: the default `auto` starts points on the particle filter, whose path mean carries ~0.1-0.25 px of Monte Carlo spread here
-    np.testing.assert_array_less(np.linalg.norm(tracks.xy - truth, axis=-1), 0.3)
+    # 0.35 px: the default `auto` starts points on the particle filter, whose path mean carries Monte Carlo spread
+    # here (largest error 0.13-0.31 px over seeds 0-7 with the default DIS motion stage)
+    np.testing.assert_array_less(np.linalg.norm(tracks.xy - truth, axis=-1), 0.35)
     lines = out.read_text().splitlines()
     assert len(lines) == 1 + 2 * 6 and lines[1].startswith("3,0,") and lines[7].startswith("7,0,")
 

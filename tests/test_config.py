@@ -22,23 +22,23 @@ def test_every_key_of_the_default_file_has_a_comment():
 
 
 def test_override_and_method():
-    config = load_config(None, ["motion.levels=2", "filter.stk.win_size=15"], method="stk")
-    assert config.stage("motion").settings.levels == 2
+    config = load_config(None, ["motion.patch_size=6", "filter.stk.win_size=15"], method="stk")
+    assert config.stage("motion").settings.patch_size == 6
     assert config.filters["stk"].win_size == 15
-    assert config.to_dict()["motion"]["levels"] == 2
+    assert config.to_dict()["motion"]["patch_size"] == 6
 
 
 @pytest.mark.parametrize(
     "overrides, key, hint",
     [
         (["motion.levelz=3"], "motion.levelz", "valid keys"),
-        (["motion.levels=0"], "motion.levels", "greater than or equal to 1"),
-        (["motion.levels=three"], "motion.levels", "integer"),
+        (["motion.patch_size=0"], "motion.patch_size", "greater than or equal to 4"),
+        (["motion.patch_size=three"], "motion.patch_size", "integer"),
         (["motion.model=projective"], "motion.model", "'translation', 'affine' or 'quadratic'"),
         (["filter.stk.win_size=2"], "filter.stk.win_size", "greater than or equal to 3"),
         (["filter.kalman.x=1"], "filter.kalman", "valid keys"),
         (["tracker.x=1"], "tracker", "valid sections"),
-        (["motion.name=nope"], "motion.name", "valid: robust"),
+        (["motion.name=nope"], "motion.name", "valid: dis, robust"),
     ],
 )
 def test_bad_values_are_refused_naming_the_key(overrides, key, hint):

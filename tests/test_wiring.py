@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import condtrack_cli as ct
+from condtrack_cli.motion.dense import DisGlobalMotion, DisLocalMotion
 from condtrack_cli.motion.local import LocalMotion
 from condtrack_cli.motion.robust import GlobalMotion
 
@@ -48,6 +49,10 @@ def tiny_scene(tmp_path_factory):
     return folder, np.column_stack((np.zeros(6), xy))
 
 
+@pytest.mark.parametrize("stage, estimators", [
+    ("dis", (DisGlobalMotion, DisLocalMotion)),
+    ("robust", (GlobalMotion, LocalMotion)),
+])
 @pytest.mark.parametrize("method, dynamics, expected", [
     ("stk", "select", (0, 0)),  # STK estimates its own motion (OpenCV LK)
     ("mdr", "select", (4, 0)),
@@ -56,10 +61,12 @@ def tiny_scene(tmp_path_factory):
     ("cnlf", "select", (4, 4)),
     ("auto", "select", (4, 4)),  # its CLF and CNLF share each pair's fit and field
 ])
-def test_each_frame_pair_gets_the_motion_the_filter_needs_once(monkeypatch, tiny_scene, method, dynamics, expected):
-    """Global fits and local fields estimated over the 4 frame pairs of one forward pass, per method."""
+def test_each_frame_pair_gets_the_motion_the_filter_needs_once(monkeypatch, tiny_scene, method, dynamics, expected,
+                                                              stage, estimators):
+    """Global fits and local fields estimated over the 4 frame pairs of one forward pass, per method and motion stage."""
     calls = {"global": 0, "local": 0}
-    fit, field = GlobalMotion.fit, LocalMotion.field
+    global_motion, local_motion = estimators
+    fit, field = global_motion.fit, local_motion.field
 
     def counted_fit(self, prev, cur):
         calls["global"] += 1
@@ -69,9 +76,10 @@ def test_each_frame_pair_gets_the_motion_the_filter_needs_once(monkeypatch, tiny
         calls["local"] += 1
         return field(self, prev, cur, global_fit)
 
-    monkeypatch.setattr(GlobalMotion, "fit", counted_fit)
-    monkeypatch.setattr(LocalMotion, "field", counted_field)
+    monkeypatch.setattr(global_motion, "fit", counted_fit)
+    monkeypatch.setattr(local_motion, "field", counted_field)
     folder, queries = tiny_scene
-    t = ct.track(str(folder), queries=queries, config={"filter": {"method": method, "clf": {"dynamics": dynamics}}})
+    t = ct.track(str(folder), queries=queries, config={"motion": {"name": stage},
+                                                       "filter": {"method": method, "clf": {"dynamics": dynamics}}})
     assert np.isfinite(t.xy).all()
     assert (calls["global"], calls["local"]) == expected

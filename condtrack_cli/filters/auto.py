@@ -45,6 +45,11 @@ Rule, per point, before each step:
    the background, not by a share of the point's own speed, and before it was
    covered both motions predicted it alike (mean e_k near 0); so it coasts on
    the dominant motion (CLF) and is measured again around the right place.
+   Rule 4 reads the evidence and the step v as they were before the point's
+   last measurement (where it had an earlier one): a point about to be covered
+   is often last measured with its patch half on the occluder, a step that moves
+   with it and that the local motion predicts (occlusion scene, DIS motion
+   stage: auto 0.935 -> 0.961 <delta_avg).
    A point handed to the CLF, or lost while on it, is predicted there by the
    dominant motion until the CLF's own ``select`` (``clf.py``) finds the
    local motion better again.
@@ -56,15 +61,16 @@ accurate: a better CLF wins more points through (2) and (3).
 Measured with ``python -m condtrack_cli.evaluate.bench --versus-lk``
 (<delta_avg, issue 11 protocol, seed 0; "first" = the
 robust-weight rule of the first version, issue 11's table; auto / clf /
-cnlf): kt3dmoseg seq005 0.728 / 0.730 / 0.723 (first 0.671), seq009 0.734 /
-0.707 / 0.738 (0.523), seq011 0.914 / 0.907 / 0.913 (0.867), seq028 0.726 /
-0.691 / 0.728 (0.434), seq059 0.778 / 0.752 / 0.779 (0.704), dinosaur 0.850 /
-0.850 / 0.850 (0.774), merton1 0.771 / 0.763 / 0.771 (0.347). Rule 4's
-evidence test: without it, points lost on parallax went to the dominant
-motion, whose error grows by tens of pixels a frame there (seq009 auto 0.712
--> 0.740 and seq028 0.656 -> 0.687 when it came); its extrapolation metric
-and hysteresis: seq009 0.726 -> 0.734, occlusion sample 0.974 -> 0.985
-(docs/departures.md).
+cnlf, with the robust motion stage of the time): kt3dmoseg seq005 0.728 /
+0.730 / 0.723 (first 0.671), seq009 0.734 / 0.707 / 0.738 (0.523), seq011
+0.914 / 0.907 / 0.913 (0.867), seq028 0.726 / 0.691 / 0.728 (0.434), seq059
+0.778 / 0.752 / 0.779 (0.704), dinosaur 0.850 / 0.850 / 0.850 (0.774), merton1
+0.771 / 0.763 / 0.771 (0.347); with the DIS stage: ``bench/results.md``.
+Rule 4's evidence test: without it, points lost on parallax went to the
+dominant motion, whose error grows by tens of pixels a frame there (seq009
+auto 0.712 -> 0.740 and seq028 0.656 -> 0.687 when it came); its
+extrapolation metric and hysteresis: seq009 0.726 -> 0.734, occlusion sample
+0.974 -> 0.985 (docs/departures.md).
 With ``filter.smooth`` each point's contiguous run of CLF frames is
 RTS-smoothed and each run of CNLF frames FFBSm-smoothed (``smoother.py``); a
 handover ends a run, so the frame before it keeps its filtered estimate.
@@ -160,6 +166,8 @@ class AutoTracker(Tracker):
         self.evidence_weight = np.zeros(p)  #: sum of the averaging weights given so far (0 before a measurement)
         self.on_cnlf = np.zeros(p, bool)
         self.velocity = np.full((p, 2), np.nan)  #: px/frame, the point's last step that ended with a measurement
+        #: evidence, its weight and velocity as they were before the point's last measurement (rule 4)
+        self.before_last = (np.zeros(p), np.zeros(p), np.full((p, 2), np.nan))
         self._step_changes = np.zeros(2)  #: averaged sums of |v_k - v_{k-1}|^2 and of |v_{k-1}|^2 (px^2)
         self.store_segmentation = store_segmentation
         self.segmentation: list[np.ndarray] = []  #: per frame pair, (H, W) uint8 255 x robust weight
@@ -199,8 +207,7 @@ class AutoTracker(Tracker):
         if lost.any():
             x, cov = self.xy[index[lost]], self.cov[index[lost]]
             dominant, local = self._predictions(x, fit, field)
-            mean_evidence = self.evidence[index[lost]] / self.evidence_weight[index[lost]]  # weight > 0: v is finite
-            velocity = self.velocity[index[lost]]
+            mean_evidence, velocity = self._before_last(index[lost])
             steps = 1 + self.errors.coasted[index[lost]]  # frames since the step v was measured
             spread = extrapolation_spread(cov, velocity, steps, self.relative_change, self.q_floor)
             want[lost] = lost_on_local(x, velocity, spread, dominant, local, mean_evidence,
@@ -219,6 +226,19 @@ class AutoTracker(Tracker):
         # local motion once it is found again (filters/clf.py).
         self.clf.predict_by_dominant(to_clf)
         self.clf.predict_by_dominant(index[lost & ~want])
+
+    def _before_last(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(n,) mean evidence and (n, 2) velocity of lost points ``index`` for rule 4, without their last measurement.
+
+        A point's last measurement before it is covered is often made with its patch already half
+        on the occluder, and moves with it: rule 4 reads the evidence and the step from before it,
+        where the point has an earlier measured step (else from its only one).
+        """
+        evidence, weight, velocity = (values[index] for values in self.before_last)
+        earlier = np.isfinite(velocity[:, 0]) & (weight > 0)
+        mean = np.where(earlier, evidence / np.where(earlier, weight, 1.0),
+                        self.evidence[index] / self.evidence_weight[index])  # weight > 0: v is finite
+        return mean, np.where(earlier[:, None], velocity, self.velocity[index])
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion) -> None:
         fit, field = motion.global_fit, motion.local_field
@@ -248,6 +268,8 @@ class AutoTracker(Tracker):
         previous = self.velocity[idx[again]]
         change = step[again] - previous
         self._step_changes += a * np.array([np.sum(change * change), np.sum(previous * previous)])
+        for kept, current in zip(self.before_last, (self.evidence, self.evidence_weight, self.velocity)):
+            kept[idx] = current[idx]
         self.velocity[idx] = step
         dominant, local = self._predictions(x_prev[found], fit, field)
         spread = cov_prev[found] + self.R[idx] + self.q_floor * np.eye(2)

@@ -5,14 +5,20 @@ Per frame, for all started points at once:
   (A_k the Jacobian of x + U(x), b_k = x + U(x) - A_k x) and Q_k (§5.1).
   ``dynamics: global`` (the paper's CLF, and MDR): U is the global robust fit,
   exact for the affine model and linearised for the quadratic one, Q_k
-  ``state_noise``. ``dynamics: local``: U and Q_k are the local robust motion
-  of the window around the point (``motion/local.py``, the CNLF's eq. 5), A_k
-  its Jacobian by central differences over one node spacing. ``dynamics:
+  ``state_noise``. ``dynamics: local``: U and Q_k are the local motion around
+  the point (the motion stage's local field, the CNLF's eq. 5), A_k its
+  Jacobian by central differences over one node spacing. ``dynamics:
   select`` (default; a departure, docs/departures.md): each point starts on
-  the local motion; after each frame where it is found, it stays on (or goes
-  to) the local motion when the local prediction fell ``select_margin`` px
-  closer to its measurement than the global one, else to the global motion;
-  a point not found keeps its choice (``CLFTracker._choose``). The global
+  the local motion; after each frame where it is found, it goes to the global
+  motion unless the local prediction fell ``select_margin`` px closer to its
+  measurement than the global one, and goes back to the local motion once the
+  local prediction has been that much closer on ``select_frames`` found frames
+  running; a point not found keeps its choice (``CLFTracker._choose``). One
+  frame is not enough: a point about to be covered is often last measured with
+  its patch half on the occluder, a step that the local motion (the
+  occluder's, near its edge) predicts better; switched on it, the point would
+  coast with the occluder (occlusion scene: clf 0.957 -> 0.983 <delta_avg with
+  two frames, DIS motion stage). The global
   quadratic model cannot follow the parallax of a driving scene (its
   one-step prediction misses by a median 3-4 px on kt3dmoseg_seq028, where
   the weakly textured points, with an uninformative SSD surface, coast on
@@ -44,7 +50,7 @@ from condtrack_cli.filters.reference import (
 from condtrack_cli.filters.smoother import TransitionLog, error_excess, rts
 from condtrack_cli.measure.interface import Measurer
 from condtrack_cli.motion.interface import FrameMotion
-from condtrack_cli.motion.local import LocalField
+from condtrack_cli.motion.field import LocalField
 from condtrack_cli.motion.model import displacement, jacobian
 from condtrack_cli.motion.state_noise import StateNoise
 from condtrack_cli.registry import register
@@ -80,6 +86,9 @@ class CLFSettings(MeasuredFilterSettings):
     )
     select_margin: float = Field(
         0.5, ge=0, description="select: the local motion predicts a point while it misses the measurement by this much less (px)"
+    )
+    select_frames: int = Field(
+        2, ge=1, description="select: consecutive found frames the local motion must win before a point switches to it"
     )
 
 
@@ -134,12 +143,14 @@ class CLFTracker(MDRTracker):
         self.reference, self.errors = reference, errors
         self.needs_local_motion = settings.dynamics != "global"
         self.on_local = np.full(len(queries), self.needs_local_motion)  #: (P,) predicted by the local motion
+        self.local_wins = np.zeros(len(queries), np.int32)  #: (P,) consecutive found frames the local motion won
         shapes = dict(A=(2, 2), x_pred=(2,), sigma_pred=(2, 2), sigma_post=(2, 2), excess=(2, 2))
         self.transitions = TransitionLog(len(queries), **shapes) if smooth else None
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         super()._start(index, frame)
         self.on_local[index] = self.needs_local_motion
+        self.local_wins[index] = 0
         self.reference.start(index, frame, self.xy[index])
         self.errors.start(index, self.cov[index])
 
@@ -182,20 +193,25 @@ class CLFTracker(MDRTracker):
     def _choose(self, index: np.ndarray, measured: GatedMeasurement, x_global: np.ndarray, x_local: np.ndarray) -> None:
         """``select``: which motion predicts points ``index`` next frame, from this frame's miss of each.
 
-        A point found this frame goes to the local motion when the local prediction
-        x_local (n, 2) fell at least ``select_margin`` px closer to its measurement than
-        the global one x_global (n, 2), else to the global motion; a point not found
-        keeps its choice (an occluded point's window moves with the occluder, so it
-        must not switch to it while covered).
+        The local prediction x_local (n, 2) wins a frame where it fell at least
+        ``select_margin`` px closer to the measurement than the global one x_global
+        (n, 2). A point found this frame goes to the global motion when the local one
+        did not win, and to the local motion once it has won ``select_frames`` found
+        frames running; a point not found keeps its choice (an occluded point's window
+        moves with the occluder, so it must not switch to it while covered).
         """
         miss_global = np.linalg.norm(measured.z - x_global, axis=1)
         miss_local = np.linalg.norm(measured.z - x_local, axis=1)
         closer = miss_global - miss_local >= self.settings.select_margin
-        self.on_local[index[measured.valid]] = closer[measured.valid]
+        found = index[measured.valid]
+        self.local_wins[found] = np.where(closer[measured.valid], self.local_wins[found] + 1, 0)
+        self.on_local[found] &= closer[measured.valid]
+        self.on_local[found] |= self.local_wins[found] >= self.settings.select_frames
 
     def predict_by_dominant(self, index: np.ndarray) -> None:
         """Points ``index`` are predicted by the dominant motion until ``select`` finds the local one better."""
         self.on_local[index] = False
+        self.local_wins[index] = 0
 
     def smooth(self, tracks: Tracks, members: np.ndarray | None = None) -> Tracks:
         """``tracks`` (this filter's :meth:`finish`) with the RTS-smoothed xy and cov of each point's segments.

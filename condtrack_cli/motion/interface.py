@@ -19,7 +19,7 @@ from condtrack_cli.motion.state_noise import StateNoise
 from condtrack_cli.types import Frame
 
 if TYPE_CHECKING:
-    from condtrack_cli.motion.local import LocalField
+    from condtrack_cli.motion.field import LocalField
 
 
 class GlobalMotionEstimator(Protocol):

@@ -261,8 +261,7 @@ def estimate_from_pyramids(prev: Pyramid, cur: Pyramid, settings: RobustMotionSe
     if prev.base.shape != cur.base.shape:
         raise ValueError(f"frames differ in shape: {prev.base.shape} and {cur.base.shape}")
     height, width = prev.base.shape
-    origin = np.array([(width - 1) / 2, (height - 1) / 2])
-    length = max(width, height) / 2
+    origin, length = frame_normalisation((height, width))
     model, cost = settings.model, settings.robust_cost
     coarsest = len(prev.levels) - 1
     for level in reversed(range(coarsest + 1)):
@@ -275,6 +274,32 @@ def estimate_from_pyramids(prev: Pyramid, cur: Pyramid, settings: RobustMotionSe
             theta = _robust_start(problem, starts, settings)
         else:
             theta = _irls(problem, theta, cost, settings)
+    return _finished_fit(problem, prev, cur, theta, settings)
+
+
+def frame_normalisation(shape: tuple[int, int]) -> tuple[np.ndarray, float]:
+    """origin (2,) px and length px of P(x) for (H, W) frames: the centre and half the longer side."""
+    height, width = shape
+    return np.array([(width - 1) / 2, (height - 1) / 2]), max(width, height) / 2
+
+
+def fit_of(prev: Pyramid, cur: Pyramid, theta: np.ndarray, settings: RobustMotionSettings) -> MotionFit:
+    """The ``MotionFit`` of a given (p,) theta (px), e.g. fitted to a dense field: scale, weights, theta_cov.
+
+    As at the end of ``estimate_from_pyramids``: the robust scale and the weighted
+    least-squares covariance from the full-resolution level's sampled residuals,
+    the per-pixel weights from every pixel.
+    """
+    origin, length = frame_normalisation(prev.base.shape)
+    problem = _LevelProblem(prev.levels[0], cur.levels[0], 0, None, settings.model, origin, length, settings)
+    return _finished_fit(problem, prev, cur, np.asarray(theta, np.float64), settings)
+
+
+def _finished_fit(problem: _LevelProblem, prev: Pyramid, cur: Pyramid, theta: np.ndarray,
+                  settings: RobustMotionSettings) -> MotionFit:
+    """The fit of ``theta`` on the full-resolution ``problem``: scale, theta_cov, per-pixel weights."""
+    model, cost = settings.model, settings.robust_cost
+    origin, length = frame_normalisation(prev.base.shape)
     residual, design, inside = problem.linearise(theta)
     scale = robust_scale(residual[inside], settings.min_scale)
     weights = robust_weights(cost, residual, scale) * inside

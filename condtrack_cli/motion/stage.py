@@ -1,7 +1,8 @@
-"""The registered motion stage ``robust``: the global fit, the local field and Q_k, from one settings model."""
+"""The registered motion stages ``dis`` (default) and ``robust``: the global fit, the local field and Q_k, from one settings model each."""
 
 from __future__ import annotations
 
+from condtrack_cli.motion.dense import DenseFlow, DisGlobalMotion, DisLocalMotion, DisMotionSettings
 from condtrack_cli.motion.interface import MotionStages
 from condtrack_cli.motion.local import LocalMotion
 from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings
@@ -15,5 +16,16 @@ def make_robust_motion(settings: RobustMotionSettings, **_context) -> MotionStag
     return MotionStages(
         global_motion=GlobalMotion(settings),
         local_motion=LocalMotion(settings),
+        state_noise=StateNoise(settings.q_floor, settings.q_misfit, settings.misfit_window),
+    )
+
+
+@register("motion", "dis", DisMotionSettings, "one dense DIS field per frame pair: local motion, its spread, the global fit")
+def make_dis_motion(settings: DisMotionSettings, **_context) -> MotionStages:
+    """Dense inverse search (``dense.py``): the field shared by the global fit and the local motion; Q_k (``state_noise.py``)."""
+    flow = DenseFlow(settings)
+    return MotionStages(
+        global_motion=DisGlobalMotion(settings, flow),
+        local_motion=DisLocalMotion(settings, flow),
         state_noise=StateNoise(settings.q_floor, settings.q_misfit, settings.misfit_window),
     )

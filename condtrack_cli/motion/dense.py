@@ -1,0 +1,231 @@
+"""Motion from one dense field per frame pair: OpenCV's dense inverse search (DIS) (paper §5.1, revised for speed).
+
+The paper estimates the CNLF's local motion by a robust parametric regression on
+a 32 x 32 window around every particle, and the CLF's dynamics by the same
+regression on the whole frame (Black & Anandan 1996; Odobez & Bouthemy 1995).
+This stage (``motion.name: dis``, the default) computes instead one dense field
+u(x) from frame k-1 to frame k with Kroeger et al.'s dense inverse search
+(ECCV 2016, ``cv2.DISOpticalFlow``: coarse-to-fine inverse-compositional patch
+alignment, patches densified by a weighted average, optional variational
+refinement) and reads everything the filters need off it:
+
+- Local motion (eq. 5): U(x) = u(x), bilinear between pixels. DIS's patches
+  (``patch_size`` px of level ``finest_scale``, i.e. 2^finest_scale times that
+  many full-resolution px) play the part of the paper's 32 x 32 window.
+- Q_k(x) of the local motion (the paper leaves Q_k open): q_floor I plus the
+  covariance of the field over the ``local_window`` square around x,
+  Cov_W(u) = mean_W(u u^T) - mean_W(u) mean_W(u)^T. Inside one motion it is the
+  spread that the motion's own gradient puts on the window (a few 0.001 px^2);
+  across a motion boundary, or where DIS's patches disagree, it grows towards
+  the squared difference of the motions: the field is inconsistent there, so the
+  motion at x is uncertain. The window is 9 px by default, about one DIS patch
+  at full resolution: with the paper's 32 px the spread of a boundary reaches
+  points 16 px away from it and the shared sets lose up to 0.03 <delta_avg
+  (``bench/results.md``, issue 26).
+- Global motion (eq. 1): theta of the parametric model (``model``) fitted to a
+  regular sample of at most ``global_samples`` vectors of u by IRLS, cost
+  ``robust_cost`` on the vector residual's norm with the scale 1.4826 MAD
+  (at least MIN_FLOW_SCALE px), started from the median vector (a translation:
+  robust up to half the frame moving otherwise). The scale, the per-pixel
+  weights and theta_cov of ``MotionFit`` are those of the brightness residual
+  of that theta on the full-resolution frames, exactly as ``robust.py``
+  computes them at the end of its own fit (``fit_of``): the routing and the
+  misfit term of Q_k read the same quantities whichever stage made the fit.
+  Refining theta by ``robust.py``'s brightness IRLS from the field's fit was
+  tried: it moved KITTI seq059's clf from 0.852 to 0.830 <delta_avg.
+- DIS's finest level: the finest whose pixel count is at most
+  ``finest_pixels`` (0 on 320 x 240 frames, 1 on 640 x 480 and on KITTI's
+  1242 x 375), unless ``finest_scale`` fixes it: DIS's cost grows with it.
+
+The field is computed once per frame pair and shared by the global and the
+local estimators (:class:`DenseFlow`).
+
+Determinism: DIS runs the same arithmetic whatever the number of OpenCV threads
+(its parallel loops split independent rows of patches), so the output does not
+depend on ``--threads``; a test checks it.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import cv2
+import numpy as np
+from pydantic import Field
+
+from condtrack_cli.motion.field import LocalField
+from condtrack_cli.motion.model import MotionFit, motion_basis
+from condtrack_cli.motion.pyramid import frame_pyramid
+from condtrack_cli.motion.robust import (
+    MAD_TO_SIGMA,
+    THETA_PRIOR_STD,
+    RobustMotionSettings,
+    fit_of,
+    frame_normalisation,
+    robust_weights,
+)
+from condtrack_cli.settings import StageSettings
+from condtrack_cli.types import Frame
+
+#: Floor of the robust scale of the global fit's vector residuals (px).
+MIN_FLOW_SCALE = 0.05
+
+#: Most IRLS passes of the global fit, and the change of theta (px) that ends them sooner.
+GLOBAL_PASSES = 10
+GLOBAL_TOLERANCE = 1e-3
+
+
+class DisMotionSettings(StageSettings):
+    frame_windows = ("local_window", "misfit_window")
+    model: Literal["translation", "affine", "quadratic"] = Field(
+        "quadratic", description="parametric model of the global motion (quadratic: the 8-parameter plane-perspective model)"
+    )
+    robust_cost: Literal["tukey", "geman_mcclure", "cauchy"] = Field(
+        "tukey", description="robust cost rho of the global fit"
+    )
+    finest_scale: int | None = Field(
+        None, ge=0, le=4,
+        description="DIS: finest pyramid level computed (0: full resolution; 1: half, upsampled; null: the finest with at most finest_pixels pixels)",
+    )
+    finest_pixels: int = Field(
+        200000, ge=1000, description="with finest_scale null: most pixels of DIS's finest level (its cost grows with them)"
+    )
+    patch_size: int = Field(8, ge=4, le=32, description="DIS: side of the aligned patches (px of the finest level)")
+    patch_stride: int = Field(4, ge=1, le=16, description="DIS: distance between patches (px of the finest level)")
+    gradient_iterations: int = Field(12, ge=1, le=100, description="DIS: gradient-descent iterations per patch")
+    refinement_iterations: int = Field(
+        2, ge=0, le=20, description="DIS: variational refinement iterations per level (0: none)"
+    )
+    global_samples: int = Field(
+        4000, ge=100, description="most field vectors in the global fit (a regular sample of the frame)"
+    )
+    q_floor: float = Field(0.25, gt=0, description="floor added to the state noise Q_k (px^2)")
+    q_misfit: float = Field(
+        100.0, ge=0, description="variance added to Q_k where the neighbourhood rejects the dominant motion (px^2)"
+    )
+    misfit_window: int = Field(15, ge=3, description="side of the neighbourhood whose robust weights scale q_misfit (px)")
+    local_window: int = Field(
+        9, ge=3, description="side of the window over which the field's spread gives Q_k of the local motion (px)"
+    )
+
+
+class DenseFlow:
+    """DIS flow of a frame pair, computed once and shared by the global and local estimators.
+
+    ``between(prev, cur)``: (H, W, 2) float32 u(x) px on frame k-1's pixel grid,
+    read-only; the last pair's field is kept (the pipeline asks for the global
+    fit, then the local field, of the same pair).
+    """
+
+    def __init__(self, settings: DisMotionSettings):
+        self.settings = settings
+        self._dis = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+        self._dis.setPatchSize(settings.patch_size)
+        self._dis.setPatchStride(settings.patch_stride)
+        self._dis.setGradientDescentIterations(settings.gradient_iterations)
+        self._dis.setVariationalRefinementIterations(settings.refinement_iterations)
+        self._pair: tuple[Frame, Frame] | None = None
+        self._flow: np.ndarray | None = None
+
+    def between(self, prev: Frame, cur: Frame) -> np.ndarray:
+        if self._pair is None or self._pair[0] is not prev or self._pair[1] is not cur:
+            self._dis.setFinestScale(finest_scale(prev.image.shape, self.settings))
+            flow = self._dis.calc(np.ascontiguousarray(prev.image), np.ascontiguousarray(cur.image), None)
+            flow.flags.writeable = False
+            self._pair, self._flow = (prev, cur), flow
+        return self._flow
+
+
+def finest_scale(shape: tuple[int, int], settings: DisMotionSettings) -> int:
+    """DIS's finest level for (H, W) frames: ``finest_scale``, or the finest with at most ``finest_pixels`` pixels."""
+    if settings.finest_scale is not None:
+        return settings.finest_scale
+    return int(max(0, np.ceil(np.log(shape[0] * shape[1] / settings.finest_pixels) / np.log(4))))
+
+
+def sample_grid(shape: tuple[int, int], samples: int, margin: int) -> np.ndarray:
+    """(N, 2) int positions (x, y) of a regular grid of at most ``samples`` pixels, ``margin`` px inside the frame."""
+    height, width = shape
+    margin = min(margin, (min(height, width) - 1) // 2)
+    inner = (height - 2 * margin) * (width - 2 * margin)
+    stride = max(1, int(np.ceil(np.sqrt(inner / samples))))
+    ys = np.arange(margin, height - margin, stride)
+    xs = np.arange(margin, width - margin, stride)
+    grid = np.stack(np.meshgrid(xs, ys), -1).reshape(-1, 2)
+    return grid[:samples]
+
+
+def fit_field(flow: np.ndarray, model: str, cost: str, samples: int, margin: int) -> np.ndarray:
+    """(p,) theta (px) of ``model`` fitted to the field by IRLS (module docstring).
+
+    flow: (H, W, 2) float32 px. Residuals e_i = u(x_i) - P(x_i) theta on the
+    sample's vectors; weights from |e_i| and the scale 1.4826 MAD of |e_i|.
+    """
+    height, width = flow.shape[:2]
+    xy = sample_grid((height, width), samples, margin)
+    vectors = flow[xy[:, 1], xy[:, 0]].astype(np.float64)  # (N, 2)
+    basis = motion_basis(model, xy, *frame_normalisation((height, width)))  # (N, 2, p)
+    design = basis.reshape(-1, basis.shape[2])  # rows x0, y0, x1, y1, ...
+    target = vectors.reshape(-1)
+    theta = np.zeros(basis.shape[2])
+    theta[[0, basis.shape[2] // 2]] = np.median(vectors, axis=0)  # the translation terms (model.py's order)
+    for _ in range(GLOBAL_PASSES):
+        norm = np.linalg.norm(vectors - basis @ theta, axis=1)
+        scale = max(MAD_TO_SIGMA * float(np.median(norm)), MIN_FLOW_SCALE)
+        weights = np.repeat(robust_weights(cost, norm, scale), 2)
+        normal = design.T @ (design * weights[:, None]) + np.eye(len(theta)) * (scale / THETA_PRIOR_STD) ** 2
+        step = np.linalg.solve(normal, design.T @ (weights * target)) - theta
+        theta = theta + step
+        if np.abs(basis @ step).max() < GLOBAL_TOLERANCE:
+            break
+    return theta
+
+
+class DisGlobalMotion:
+    """Global-support motion stage (``motion/interface.py``): the parametric model fitted to the DIS field."""
+
+    def __init__(self, settings: DisMotionSettings, flow: DenseFlow):
+        self.settings = settings
+        self.flow = flow
+        self.brightness = RobustMotionSettings(model=settings.model, robust_cost=settings.robust_cost, levels=1)
+
+    def fit(self, prev: Frame, cur: Frame) -> MotionFit:
+        """The dominant motion from ``prev`` to ``cur``: theta from the field; scale and weights from the frames."""
+        settings = self.settings
+        field = self.flow.between(prev, cur)
+        margin = settings.patch_size * 2 ** finest_scale(field.shape[:2], settings)  # border patches see past the frame
+        theta = fit_field(field, settings.model, settings.robust_cost, settings.global_samples, margin)
+        return fit_of(frame_pyramid(prev, 1), frame_pyramid(cur, 1), theta, self.brightness)
+
+
+def window_spread(flow: np.ndarray, window: int) -> np.ndarray:
+    """(H, W, 3) float32 Cov_W(u) as (xx, xy, yy) px^2: the field's covariance over the ``window`` square at each pixel.
+
+    flow: (H, W, 2) float32 px. Box means (borders reflected); negative rounding
+    residue on the diagonal is clipped to 0.
+    """
+    size = (window, window)
+    mean = cv2.boxFilter(flow, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    u, v = flow[..., 0], flow[..., 1]
+    moments = cv2.boxFilter(np.dstack((u * u, u * v, v * v)), cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    moments[..., 0] -= mean[..., 0] * mean[..., 0]
+    moments[..., 1] -= mean[..., 0] * mean[..., 1]
+    moments[..., 2] -= mean[..., 1] * mean[..., 1]
+    np.maximum(moments[..., 0], 0, out=moments[..., 0])
+    np.maximum(moments[..., 2], 0, out=moments[..., 2])
+    return moments
+
+
+class DisLocalMotion:
+    """Local-support motion stage (``motion/interface.py``): the DIS field and its spread over the window (eq. 5)."""
+
+    def __init__(self, settings: DisMotionSettings, flow: DenseFlow):
+        self.settings = settings
+        self.flow = flow
+
+    def field(self, prev: Frame, cur: Frame, fit: MotionFit) -> LocalField:
+        """U(x) = u(x) and Q_k(x) = q_floor I + Cov_W(u)(x) from ``prev`` to ``cur``, a node per pixel (``fit`` unused)."""
+        flow = self.flow.between(prev, cur)
+        spread = window_spread(flow, self.settings.local_window)
+        spread.flags.writeable = False
+        return LocalField(flow, spread, 0.0, 1.0, self.settings.q_floor)
