@@ -1,7 +1,8 @@
 """The plain OpenCV Lucas-Kanade script that condtrack's speed is measured against (issue 13).
 
 What a user would write instead of condtrack, run as a file so that it imports
-only numpy and OpenCV: ``python plain_lk.py FRAMES QUERIES OUT.csv``. It reads
+only numpy and OpenCV: ``python plain_lk.py FRAMES QUERIES OUT.csv [THREADS]``
+(THREADS: OpenCV's thread count, its default otherwise). It reads
 every image of the folder FRAMES in name order as grey levels, tracks each
 point of QUERIES (CSV ``point_id,frame,x,y``) from its query frame on with
 ``cv2.calcOpticalFlowPyrLK`` (winSize 21, maxLevel 3, 30 iterations or
@@ -68,4 +69,6 @@ def main(frames: str, queries: str, out: str) -> None:
 
 
 if __name__ == "__main__":
+    if len(sys.argv) > 4:  # an optional thread count: the comparison pinned to one thread
+        cv2.setNumThreads(int(sys.argv[4]))
     main(*sys.argv[1:4])

@@ -201,19 +201,15 @@ class DisGlobalMotion:
 def window_spread(flow: np.ndarray, window: int) -> np.ndarray:
     """(H, W, 3) float32 Cov_W(u) as (xx, xy, yy) px^2: the field's covariance over the ``window`` square at each pixel.
 
-    flow: (H, W, 2) float32 px. Box means (borders reflected); negative rounding
-    residue on the diagonal is clipped to 0.
+    flow: (H, W, 2) float32 px. Box means, borders reflected. Rounding may leave
+    the diagonal a little below 0 where the field is constant: ``LocalField.noise``
+    clips what it samples.
     """
     size = (window, window)
-    mean = cv2.boxFilter(flow, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
-    u, v = flow[..., 0], flow[..., 1]
-    moments = cv2.boxFilter(np.dstack((u * u, u * v, v * v)), cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
-    moments[..., 0] -= mean[..., 0] * mean[..., 0]
-    moments[..., 1] -= mean[..., 0] * mean[..., 1]
-    moments[..., 2] -= mean[..., 1] * mean[..., 1]
-    np.maximum(moments[..., 0], 0, out=moments[..., 0])
-    np.maximum(moments[..., 2], 0, out=moments[..., 2])
-    return moments
+    u, v = cv2.split(flow)
+    moments = cv2.boxFilter(cv2.merge((u * u, u * v, v * v)), cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    mean_u, mean_v = cv2.split(cv2.boxFilter(flow, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT))
+    return cv2.subtract(moments, cv2.merge((mean_u * mean_u, mean_u * mean_v, mean_v * mean_v)))
 
 
 class DisLocalMotion:

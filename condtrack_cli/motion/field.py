@@ -45,6 +45,7 @@ class LocalField:
     def noise(self, xy: np.ndarray) -> np.ndarray:
         """Q_k(x) (..., 2, 2) px^2 at positions x (..., 2): symmetric, eigenvalues >= q_floor (eq. 5)."""
         xx, xy_, yy = np.moveaxis(self._at(self.cov, xy), -1, 0)
+        xx, yy = np.maximum(xx, 0.0), np.maximum(yy, 0.0)  # float32 rounding of a variance near 0
         bound = np.sqrt(xx * yy)  # keeps float32 rounding from making a nearly singular cov indefinite
         xy_ = np.clip(xy_, -bound, bound)
         cov = np.stack((np.stack((xx, xy_), -1), np.stack((xy_, yy), -1)), -2)

@@ -77,10 +77,13 @@ def main() -> None:
                         help="folder of the real sets for the section against OpenCV LK")
     parser.add_argument("--versus-lk", action="store_true",
                         help="only print the section against OpenCV LK (issue 11); results.md is not written")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="with --versus-lk: a config override for every condtrack run (a variant's numbers)")
     args = parser.parse_args()
     if args.versus_lk:
         args.work.mkdir(parents=True, exist_ok=True)
-        print("\n".join(versus_lk_section(args.work, args.shared_data)))
+        extra = tuple(arg for override in args.set for arg in ("--set", override))
+        print("\n".join(versus_lk_section(args.work, args.shared_data, extra)))
         return
     if args.support:
         print("\n".join(support_table(args.support)))
@@ -88,7 +91,8 @@ def main() -> None:
     if args.speed:
         shutil.rmtree(args.work / "speed", ignore_errors=True)
         args.work.mkdir(parents=True, exist_ok=True)
-        print("\n".join(speed_table(args.work, args.shared_data) + ["## Profile", ""]
+        print("\n".join(speed_table(args.work, args.shared_data) + ["One thread:", ""]
+                        + speed_table(args.work, args.shared_data, threads=1) + ["## Profile", ""]
                         + profile_table(args.work, args.shared_data)))
         return
     if args.memory:
@@ -103,7 +107,8 @@ def main() -> None:
     shutil.rmtree(args.work, ignore_errors=True)
     args.work.mkdir(parents=True)
     accuracy = accuracy_table(args.max_points, args.work)
-    speed = speed_table(args.work, args.shared_data)
+    speed = speed_table(args.work, args.shared_data) + ["One thread:", ""] + speed_table(args.work, args.shared_data,
+                                                                                             threads=1)
     profile = profile_table(args.work, args.shared_data)
     memory = memory_table(args.work)
     batch = batch_table(args.work)

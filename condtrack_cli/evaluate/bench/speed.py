@@ -14,7 +14,11 @@ from condtrack_cli.evaluate.groundtruth import load_gt_csv
 
 
 #: Methods of the speed comparison with OpenCV LK (issue 13) and of the profile table.
-SPEED_METHODS = ("clf", "auto", "cnlf")
+FILTER_METHODS = ("clf", "auto", "cnlf")
+SPEED_METHODS = FILTER_METHODS + ("stk",)
+
+#: Issue 26's targets: the largest whole-process time of each method over the OpenCV script's, same run.
+TIME_TARGETS = {"clf": 4.0, "auto": 5.0, "cnlf": 6.0, "stk": 1.3}
 
 #: The shared clip of the speed comparison on real frames (KITTI, 1242x375).
 SPEED_CLIP = "kt3dmoseg_seq005_clip01"
@@ -57,27 +61,31 @@ def speed_scenes(work: Path, shared: Path) -> list[tuple[str, Path, Path]]:
     return scenes
 
 
-def run_plain_lk(folder: Path, queries: Path, out: Path) -> tuple[float, float, int, str]:
+def run_plain_lk(folder: Path, queries: Path, out: Path, threads: int | None = None) -> tuple[float, float, int, str]:
     """Run the plain OpenCV script (``plain_lk.py``) as its own process: like :func:`run_track`."""
     script = Path(__file__).resolve().parents[1] / "plain_lk.py"
-    return run_process([sys.executable, str(script), str(folder), str(queries), str(out)])
+    return run_process([sys.executable, str(script), str(folder), str(queries), str(out)]
+                       + ([str(threads)] if threads else []))
 
 
-def speed_table(work: Path, shared: Path, repeats: int = 3) -> list[str]:
-    """Markdown: whole-process wall time of each method over the plain OpenCV LK script's, per speed scene (issue 13).
+def speed_table(work: Path, shared: Path, repeats: int = 3, threads: int | None = None) -> list[str]:
+    """Markdown: whole-process wall time of each method over the plain OpenCV LK script's, per speed scene (issue 26).
 
     Per scene, ``repeats`` rounds each run the script (``plain_lk.py``: decode, LK
     with the forward-backward check, CSV out) then each of ``SPEED_METHODS`` (``condtrack
     track``, start-up and writing the HDF5 file included), one process each; the
     table gives the median wall time, its ratio to the script's median of the same
-    run and the largest peak RSS.
+    run, the largest peak RSS and issue 26's check. ``threads``: both sides pinned
+    to that many threads (``--threads`` and ``cv2.setNumThreads``); None: their defaults.
     """
     methods = ("opencv-lk",) + SPEED_METHODS
+    pinned = [] if threads is None else ["--threads", str(threads)]
     lines = [
         f"Whole-process wall time, median of {repeats} rounds run one after the other (script, then each method), "
         "and its ratio to the plain OpenCV LK script (`condtrack_cli/evaluate/plain_lk.py`: calcOpticalFlowPyrLK "
-        "winSize 21, maxLevel 3, forward-backward check 1 px, CSV out) of the same run. Issue 13's targets: "
-        "clf <= 2x, auto <= 3x, cnlf <= 5x, peak RSS <= 300 MiB.",
+        "winSize 21, maxLevel 3, forward-backward check 1 px, CSV out) of the same run"
+        + (f", both pinned to {threads} thread(s)" if threads else ", each with its default threads") + ". "
+        "Issue 26's targets: " + ", ".join(f"{m} <= {x:g}x" for m, x in TIME_TARGETS.items()) + ", peak RSS <= 300 MiB.",
         "",
     ]
     for title, folder, queries in speed_scenes(work, shared):
@@ -85,22 +93,25 @@ def speed_table(work: Path, shared: Path, repeats: int = 3) -> list[str]:
         for _ in range(repeats):
             for method in methods:
                 if method == "opencv-lk":
-                    seconds, rss, code, message = run_plain_lk(folder, queries, work / "speed.lk.csv")
+                    seconds, rss, code, message = run_plain_lk(folder, queries, work / "speed.lk.csv", threads)
                 else:
                     seconds, rss, code, message = run_track(
-                        [str(folder), "-p", str(queries), "-m", method, "-o", str(work / f"speed.{method}.h5")])
+                        [str(folder), "-p", str(queries), "-m", method, "-o", str(work / f"speed.{method}.h5")] + pinned)
                 if code:
                     failed[method] = message
                 times[method].append(seconds)
                 peaks[method] = max(peaks[method], rss)
         lk = float(np.median(times["opencv-lk"]))
-        lines += [f"Scene: {title}.", "", "| method | wall (s) | × OpenCV LK | peak RSS (MiB) |", "|---|---|---|---|"]
+        lines += [f"Scene: {title}.", "", "| method | wall (s) | × OpenCV LK | peak RSS (MiB) | check |",
+                  "|---|---|---|---|---|"]
         for method in methods:
             if method in failed:
-                lines.append(f"| {method} | failed: {failed[method]} | | |")
+                lines.append(f"| {method} | failed: {failed[method]} | | | |")
                 continue
             median = float(np.median(times[method]))
-            lines.append(f"| {method} | {median:.2f} | {median / lk:.1f} | {peaks[method]:.0f} |")
+            target = TIME_TARGETS.get(method)
+            check = "" if target is None else ("pass" if median / lk <= target else "FAIL") + f" (<= {target:g}x)"
+            lines.append(f"| {method} | {median:.2f} | {median / lk:.1f} | {peaks[method]:.0f} | {check} |")
             print(lines[-1], file=sys.stderr)
         lines.append("")
     return lines
@@ -111,7 +122,7 @@ MEMORY_LENGTHS = (100, 1000)
 MEMORY_GROWTH = 1.2
 
 
-def memory_table(work: Path, methods: tuple[str, ...] = SPEED_METHODS) -> list[str]:
+def memory_table(work: Path, methods: tuple[str, ...] = FILTER_METHODS) -> list[str]:
     """Markdown: peak RSS of each method on the 640 x 480 speed scene at each of ``MEMORY_LENGTHS`` frames (issue 13).
 
     One ``condtrack track`` process per method and length (HDF5 output), measured by
@@ -148,8 +159,10 @@ def memory_table(work: Path, methods: tuple[str, ...] = SPEED_METHODS) -> list[s
 PROFILE_STAGES = (
     ("frame decoding (cv2.imread)", "~", "<imread>"),
     ("pyramids and gradients (pyramid.deepen)", "motion/pyramid.py", "deepen"),
-    ("global robust motion (robust.estimate_from_pyramids)", "motion/robust.py", "estimate_from_pyramids"),
-    ("local robust motion (local.local_field)", "motion/local.py", "local_field"),
+    ("dense field (DIS, dense.DenseFlow.between)", "motion/dense.py", "between"),
+    ("global fit to the field (dense.fit_field)", "motion/dense.py", "fit_field"),
+    ("global fit's weights and scale (robust.fit_of)", "motion/robust.py", "fit_of"),
+    ("Q_k of the local field (dense.window_spread)", "motion/dense.py", "window_spread"),
     ("SSD measurement (ssd.measure)", "measure/ssd.py", "measure"),
 )
 
@@ -189,12 +202,12 @@ def profile_table(work: Path, shared: Path) -> list[str]:
         + "; ".join(f"({chr(97 + i)}) {title}" for i, (title, _, _) in enumerate(scenes)) + ". "
         "`python -m cProfile -o out.prof -m condtrack_cli track FRAMES -p QUERIES -m METHOD -o out.h5 -q`.",
         "",
-        "| stage | " + " | ".join(f"{m} ({chr(97 + i)})" for i in range(len(scenes)) for m in SPEED_METHODS) + " |",
-        "|---|" + "---|" * (len(scenes) * len(SPEED_METHODS)),
+        "| stage | " + " | ".join(f"{m} ({chr(97 + i)})" for i in range(len(scenes)) for m in FILTER_METHODS) + " |",
+        "|---|" + "---|" * (len(scenes) * len(FILTER_METHODS)),
     ]
     columns = []
     for index, (_, folder, queries) in enumerate(scenes):
-        for method in SPEED_METHODS:
+        for method in FILTER_METHODS:
             profile = work / f"profile.{index}.{method}.prof"
             subprocess.run([sys.executable, "-m", "cProfile", "-o", str(profile), "-m", "condtrack_cli", "track",
                             str(folder), "-p", str(queries), "-m", method, "-o", str(work / "profile.h5"), "-q"],

@@ -36,12 +36,14 @@ def versus_lk_queries(truth: GroundTruth, oxford: bool, max_points: int = 300) -
     return gt_queries(truth, min_observations=2 if oxford else 5, max_points=max_points)
 
 
-def score_versus_lk(folder: Path, queries: Path, truth: GroundTruth, work: Path, stem: str) -> dict:
+def score_versus_lk(folder: Path, queries: Path, truth: GroundTruth, work: Path, stem: str,
+                    extra: tuple[str, ...] = ()) -> dict:
     """{column: (metrics dict, wall seconds)} for OpenCV LK and ``VERSUS_LK_METHODS`` on one sequence.
 
     LK runs in this process (frame reading and both LK directions timed); each
     condtrack method runs as its own ``condtrack track`` process (whole-process
-    wall time, start-up included). A failed method maps to (None, message).
+    wall time, start-up included), with the ``extra`` arguments (e.g. ``--set`` overrides).
+    A failed method maps to (None, message).
     """
     from condtrack_cli.evaluate.opencv_lk import opencv_lk
     from condtrack_cli.frames.readers import FrameSettings, open_frames
@@ -52,7 +54,7 @@ def score_versus_lk(folder: Path, queries: Path, truth: GroundTruth, work: Path,
     results = {"lk": (score_tracks(lk, truth, "first")[0], time.perf_counter() - started)}
     for method in VERSUS_LK_METHODS:
         out = work / f"{stem}.{method}.h5"
-        seconds, _, code, message = run_track([str(folder), "-p", str(queries), "-m", method, "-o", str(out)])
+        seconds, _, code, message = run_track([str(folder), "-p", str(queries), "-m", method, "-o", str(out), *extra])
         results[method] = (None, message) if code else (score_tracks(read_tracks(out)[0], truth, "first")[0], seconds)
     return results
 
@@ -71,7 +73,7 @@ def _check(ok: bool, text: str) -> str:
     return f"- [{'x' if ok else ' '}] {'pass' if ok else 'FAIL'}: {text}"
 
 
-def real_video_table(work: Path, shared: Path, max_points: int = 300) -> list[str]:
+def real_video_table(work: Path, shared: Path, max_points: int = 300, extra: tuple[str, ...] = ()) -> list[str]:
     """Markdown: <δ_avg of OpenCV LK and each method per real set of ``shared``, then issue 11's done-when checks."""
     columns = ("lk",) + VERSUS_LK_METHODS
     lines = ["| set | points | " + " | ".join(columns) + " |", "|---|---|" + "---|" * len(columns)]
@@ -83,7 +85,7 @@ def real_video_table(work: Path, shared: Path, max_points: int = 300) -> list[st
         rows = versus_lk_queries(truth, folder.name.startswith("oxford"), max_points)
         queries = work / f"lk11_{folder.name}.queries.csv"
         write_queries(rows, queries)
-        per_set[folder.name] = score_versus_lk(folder, queries, truth, work, f"lk11_{folder.name}")
+        per_set[folder.name] = score_versus_lk(folder, queries, truth, work, f"lk11_{folder.name}", extra)
         lines.append(f"| {folder.name} | {len(rows)} | " + " | ".join(_cell(per_set[folder.name][c]) for c in columns) + " |")
         print(lines[-1], file=sys.stderr)
     if not per_set:
@@ -141,7 +143,7 @@ def coverage_table(per_set: dict, label: str) -> list[str]:
     return lines + ["", f"Calibration targets of issue 12 ({label}s):", ""] + checks
 
 
-def synthetic_versus_lk_table(work: Path) -> list[str]:
+def synthetic_versus_lk_table(work: Path, extra: tuple[str, ...] = ()) -> list[str]:
     """Markdown: the ``condtrack synth`` scenes at their defaults, LK and each method, then issue 11's checks."""
     from condtrack_cli.frames.synthetic import make_scene, write_scene
 
@@ -152,7 +154,7 @@ def synthetic_versus_lk_table(work: Path) -> list[str]:
     for scene in VERSUS_LK_SCENES:
         folder = write_scene(make_scene(scene), work / f"synth_{scene}")
         truth = load_gt_csv(folder / "tracks.csv")
-        per_scene[scene] = score_versus_lk(folder, folder / "queries.csv", truth, work, f"synth_{scene}")
+        per_scene[scene] = score_versus_lk(folder, folder / "queries.csv", truth, work, f"synth_{scene}", extra)
         cells = [
             "failed" if m is None else " / ".join(fmt(m[key]) for key in ("delta_avg", "AJ", "OA"))
             for m, _ in (per_scene[scene][c] for c in columns)
@@ -179,8 +181,11 @@ def synthetic_versus_lk_table(work: Path) -> list[str]:
     ] + coverage_table(per_scene, "scene")
 
 
-def versus_lk_section(work: Path, shared: Path = REPO.parent / "shared" / "data") -> list[str]:
-    """The results.md section of issue 11: real video and synthetic scenes against OpenCV LK maxLevel 3."""
+def versus_lk_section(work: Path, shared: Path = REPO.parent / "shared" / "data", extra: tuple[str, ...] = ()) -> list[str]:
+    """The results.md section of issue 11: real video and synthetic scenes against OpenCV LK maxLevel 3.
+
+    extra: arguments added to every ``condtrack track`` (``--set`` overrides, to measure a variant).
+    """
     return [
         "## Against OpenCV LK (issue 11)",
         "",
@@ -190,8 +195,8 @@ def versus_lk_section(work: Path, shared: Path = REPO.parent / "shared" / "data"
         "(>= 2 on the Oxford sets), at most 300 per set taken evenly; <δ_avg in the 'first' query mode; "
         "cells are <δ_avg (wall seconds). Track files: bench/out/lk11_<set>.<method>.h5.",
         "",
-    ] + real_video_table(work, shared) + [
+    ] + real_video_table(work, shared, extra=extra) + [
         "",
         "Synthetic scenes of `condtrack synth` at their defaults (seed 0); track files bench/out/synth_<scene>.<method>.h5.",
         "",
-    ] + synthetic_versus_lk_table(work)
+    ] + synthetic_versus_lk_table(work, extra)
