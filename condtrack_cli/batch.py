@@ -54,7 +54,7 @@ class BatchJob:
     config: Config
     queries_path: str | None
     seed: int
-    threads: int | None  #: threads of this job (None: every core)
+    threads: int | None  #: threads of this job (None: every core the process may use)
 
 
 @dataclass(frozen=True)

@@ -31,7 +31,7 @@ def batch_options(command):
         click.option("--scheduler", metavar="ADDRESS", help="Batch: run one task per input on this dask.distributed scheduler."),
         click.option("--scheduler-file", type=click.Path(dir_okay=False, exists=True), help="Batch: as --scheduler, from a Dask scheduler file."),
         click.option("--threads", type=click.IntRange(min=1),
-                     help=f"Threads per input (default ${THREADS_ENV}, else every core for one input, 1 per job with -j N)."),
+                     help=f"Threads per input (default ${THREADS_ENV}, else every core for one input, cores / N per job with -j N)."),
     ]
     for option in reversed(options):
         command = option(command)

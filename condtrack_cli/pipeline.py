@@ -11,6 +11,8 @@ previous and the current one (each carries its pyramid, built once), keeps the
 frames' reports on disk in blocks (``frame_reports.py``: memory flat in the
 clip's length) and hands each to an optional ``on_frame`` callback (progress
 display); the motion stage's work arrays go before the pass's reports are stacked.
+A reader thread decodes the next frame while the current one is tracked
+(``frames/prefetch.py``).
 
 A point queried at frame k > 0 is tracked forward from k and backward from k:
 the backward pass runs the same filter on the time-reversed frames k_max .. 0
@@ -35,6 +37,7 @@ from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.filters.interface import Tracker
 from condtrack_cli.frame_reports import FrameReports, park, temporary_folder
+from condtrack_cli.frames.prefetch import Prefetched
 from condtrack_cli.motion.interface import FrameMotion, MotionStages
 from condtrack_cli.queries import detected_queries
 from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tracks
@@ -133,7 +136,8 @@ def run_pass(
     was started before the pair's second frame.
     """
     with FrameReports() as history:
-        tracker = _track_frames(frames, info, config, queries, seed, on_frame, history)
+        with Prefetched(frames) as ahead:  # frame k+1 is decoded while frame k is tracked
+            tracker = _track_frames(ahead, info, config, queries, seed, on_frame, history)
         tracks = tracker.finish(history)
     return tracker.smooth(tracks) if config.smooth else tracks
 

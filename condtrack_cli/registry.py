@@ -12,9 +12,10 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from importlib import import_module, metadata
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
-from pydantic import BaseModel
+if TYPE_CHECKING:  # the settings models' base; pydantic itself loads with the first stage
+    from pydantic import BaseModel
 
 #: The kinds of stage, in data-flow order.
 KINDS = ("frames", "detect", "motion", "measure", "filter", "output")
@@ -28,7 +29,7 @@ _BUILTIN_MODULES = (
     "condtrack_cli.motion",
     "condtrack_cli.measure",
     "condtrack_cli.filters",
-    "condtrack_cli.io",
+    "condtrack_cli.io.write",
 )
 
 

@@ -1,9 +1,9 @@
 """How many threads one clip uses: OpenCV's pool, scipy.fft's workers and the BLAS pools.
 
-One clip alone may use every core (the default: OpenCV's and the BLAS
-libraries' own choice, ``scipy.fft`` with ``workers=-1``). A batch of ``-j N``
-gives each job ``threads_per_job`` threads so that N jobs never ask for more
-threads than the machine has cores.
+One clip alone uses every core this process may run on (:func:`cores`, its CPU
+affinity) unless ``--threads`` says otherwise. A batch of ``-j N`` gives each
+job ``threads_per_job`` threads, the cores shared out, so that N jobs never ask
+for more threads than the machine has cores.
 
 The BLAS and OpenMP pools read their size once, when numpy is imported: a
 process started for a batch job gets :func:`blas_environment` in its
@@ -21,7 +21,7 @@ THREADS_ENV = "CONDTRACK_THREADS"
 #: Variables read by the BLAS / OpenMP libraries numpy and scipy may load, at import time.
 BLAS_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
 
-_fft_workers = -1  # scipy.fft's ``workers``: -1 = every core
+_fft_workers = -1  # scipy.fft's ``workers`` (-1: scipy's every core) until use_threads sets it
 
 
 def cores() -> int:
@@ -42,18 +42,17 @@ def threads_from_environment() -> int | None:
     return int(text)
 
 
-def threads_per_job(requested: int | None, jobs: int, available: int | None = None) -> tuple[int | None, str | None]:
+def threads_per_job(requested: int | None, jobs: int, available: int | None = None) -> tuple[int, str | None]:
     """(threads for each of ``jobs`` parallel jobs, a warning or None).
 
-    ``requested`` None: a single job uses every core (None = the libraries'
-    default) and ``jobs`` > 1 use one thread each. A request is capped at
-    ``available // jobs`` (at least 1) so the jobs never oversubscribe the
-    ``available`` cores; the warning says so.
+    ``requested`` None: the ``available`` cores shared out, ``available // jobs``
+    each (at least 1). A request is capped at that share when ``jobs`` > 1 so the
+    jobs never oversubscribe the ``available`` cores; the warning says so.
     """
     available = available or cores()
-    if requested is None:
-        return (None if jobs == 1 else 1), None
     fair = max(1, available // jobs)
+    if requested is None:
+        return fair, None
     if jobs > 1 and requested > fair:
         return fair, (f"{requested} threads x {jobs} jobs exceeds the {available} cores: "
                       f"using {fair} thread{'s' if fair > 1 else ''} per job")
@@ -66,12 +65,12 @@ def blas_environment(threads: int | None) -> dict[str, str]:
 
 
 def use_threads(threads: int | None) -> None:
-    """Size OpenCV's thread pool and scipy.fft's workers for this process (None: every core)."""
+    """Size OpenCV's thread pool and scipy.fft's workers for this process (None: every core it may use)."""
     import cv2
 
     global _fft_workers
-    cv2.setNumThreads(-1 if threads is None else threads)  # -1: OpenCV's default, every core
-    _fft_workers = -1 if threads is None else threads
+    _fft_workers = cores() if threads is None else threads
+    cv2.setNumThreads(_fft_workers)
 
 
 def fft_workers() -> int:

@@ -25,11 +25,12 @@ MANIFEST_FIELDS = {"input", "output", "status", "error", "seconds", "frames", "p
                    "version", "seed"}
 
 
-def run_cli(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
-    """Run the real console entry point in a child process."""
+def run_cli(*args: str, env: dict | None = None, affinity: set[int] | None = None) -> subprocess.CompletedProcess:
+    """Run the real console entry point in a child process (on the CPUs ``affinity`` when given)."""
     return subprocess.run(
         [sys.executable, "-c", "from condtrack_cli.cli import main; main()", *args],
         capture_output=True, text=True, timeout=300, env=env,
+        preexec_fn=None if affinity is None else lambda: os.sched_setaffinity(0, affinity),
     )
 
 
@@ -221,27 +222,29 @@ def test_interrupted_batch_stops_its_workers_and_publishes_nothing_after(tmp_pat
     assert "Traceback" not in stderr
 
 
-def test_a_batch_of_two_jobs_uses_one_thread_per_job(clips, tmp_path):
-    out_dir = tmp_path / "tracks"
-    result = run_cli("track", *clips[:2], "-m", "clf", "--out-dir", str(out_dir), "-j", "2", "-q")
-    assert result.returncode == 0, result.stderr
-    for record in manifest(out_dir):
-        assert record["threads"] == {"opencv": 1, "fft": 1, "omp": "1"}, record
-    # one input alone may use every core
+def test_a_batch_of_two_jobs_shares_the_cores_out(clips, tmp_path):
+    cores = len(os.sched_getaffinity(0))
     env = {k: v for k, v in os.environ.items() if k not in ("CONDTRACK_THREADS", "OMP_NUM_THREADS")}
-    result = run_cli("track", clips[0], "-m", "clf", "--out-dir", str(tmp_path / "one"), "-q", env=env)
+    out_dir = tmp_path / "tracks"
+    result = run_cli("track", *clips[:2], "-m", "clf", "--out-dir", str(out_dir), "-j", "2", "-q", env=env)
+    assert result.returncode == 0, result.stderr
+    half = max(1, cores // 2)
+    for record in manifest(out_dir):
+        assert record["threads"] == {"opencv": half, "fft": half, "omp": str(half)}, record
+    # one input alone uses every core it may run on, here with one core fewer
+    run_on = sorted(os.sched_getaffinity(0))[: max(1, cores - 1)]
+    result = run_cli("track", clips[0], "-m", "clf", "--out-dir", str(tmp_path / "one"), "-q", env=env,
+                     affinity=set(run_on))
     assert result.returncode == 0, result.stderr
     (record,) = manifest(tmp_path / "one")
-    assert record["threads"]["fft"] == -1 and record["threads"]["omp"] == ""
+    assert record["threads"] == {"opencv": len(run_on), "fft": len(run_on), "omp": ""}, record
     # the environment default, capped so the jobs do not oversubscribe the cores
-    cores = len(os.sched_getaffinity(0))
     result = run_cli("track", *clips[:2], "-m", "stk", "--out-dir", str(tmp_path / "env"), "-j", "2",
                      env={**env, "CONDTRACK_THREADS": str(cores)})
     assert result.returncode == 0, result.stderr
-    per_job = max(1, cores // 2)
     for record in manifest(tmp_path / "env"):
-        assert record["threads"]["fft"] == per_job and record["threads"]["omp"] == str(per_job)
-    assert (f"using {per_job} thread" in result.stderr) == (cores > per_job)
+        assert record["threads"]["fft"] == half and record["threads"]["omp"] == str(half)
+    assert (f"using {half} thread" in result.stderr) == (cores > half)
 
 
 def test_dask_run_writes_the_same_bytes_as_the_local_run(clips, tmp_path):

@@ -1,12 +1,16 @@
-"""Frame readers: folders and videos give the same frames, natural sort, conversions, bad inputs."""
+"""Frame readers: folders and videos give the same frames, natural sort, conversions, bad inputs; the reader thread."""
 
 from __future__ import annotations
+
+import threading
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 from condtrack_cli.errors import CondtrackError
+from condtrack_cli.frames.prefetch import Prefetched
 from condtrack_cli.frames.readers import FrameSettings, natural_key, open_frames, to_gray8
 
 
@@ -15,7 +19,9 @@ def _frames(n=5, shape=(48, 64)):
     return [rng.integers(0, 256, shape, dtype=np.uint8) for _ in range(n)]
 
 
-def test_folder_and_lossless_video_give_the_same_frames(tmp_path):
+@pytest.fixture
+def folder_and_video(tmp_path) -> tuple[list[np.ndarray], Path, Path]:
+    """Five random 64 x 48 frames, written as a folder of PNGs and as a lossless (FFV1) video."""
     frames = _frames()
     folder = tmp_path / "seq"
     folder.mkdir()
@@ -26,6 +32,11 @@ def test_folder_and_lossless_video_give_the_same_frames(tmp_path):
     for image in frames:
         writer.write(image)
     writer.release()
+    return frames, folder, video
+
+
+def test_folder_and_lossless_video_give_the_same_frames(folder_and_video):
+    frames, folder, video = folder_and_video
     from_folder = open_frames(FrameSettings(), folder)
     from_video = open_frames(FrameSettings(), video)
     assert from_folder.info.n_frames == from_video.info.n_frames == 5
@@ -99,3 +110,64 @@ def test_a_dangling_symlink_frame_is_an_error_naming_it(tmp_path):
     (tmp_path / "f1.png").symlink_to(tmp_path / "gone.png")
     with pytest.raises(CondtrackError, match=r"f1\.png: a broken symbolic link"):
         open_frames(FrameSettings(), tmp_path)
+
+
+def _readers() -> list[threading.Thread]:
+    return [thread for thread in threading.enumerate() if thread.name == "condtrack-frame-reader"]
+
+
+@pytest.mark.parametrize("kind", ["folder", "video"])
+def test_the_reader_thread_gives_the_frames_of_the_plain_reader(folder_and_video, kind):
+    frames, folder, video = folder_and_video
+    source = open_frames(FrameSettings(), folder if kind == "folder" else video)
+    for plain, ahead in [(source, source), (source.reversed_from(3), source.reversed_from(3))]:
+        expected = list(plain)
+        with Prefetched(ahead) as prefetched:
+            got = list(prefetched)
+        assert len(got) == len(expected) > 0
+        for a, b in zip(got, expected):
+            np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(got[0], frames[3])  # reversed_from(3) starts at frame 3
+    assert not _readers()
+
+
+def test_a_bad_frame_raises_the_plain_readers_error_in_the_consumer(tmp_path):
+    image = np.zeros((8, 8), np.uint8)
+    for k in (0, 1, 3):
+        cv2.imwrite(str(tmp_path / f"{k}.png"), image)
+    (tmp_path / "2.png").write_bytes(b"\x89PNG truncated")
+    source = open_frames(FrameSettings(), tmp_path)
+    with pytest.raises(CondtrackError) as plain:
+        list(source)
+    assert "frame 2" in str(plain.value) and "not a readable image" in str(plain.value)
+    got = []
+    with pytest.raises(CondtrackError) as ahead, Prefetched(source) as prefetched:
+        for frame in prefetched:
+            got.append(frame)
+    assert str(ahead.value) == str(plain.value)
+    assert len(got) == 2  # the frames before the bad one arrived first
+    assert not _readers()
+
+
+def test_a_consumer_stopping_early_leaves_no_thread_and_closes_the_frames():
+    produced, closed = [], []
+
+    def endless():
+        try:
+            while True:
+                produced.append(len(produced))
+                yield produced[-1]
+        finally:
+            closed.append(threading.current_thread().name)
+
+    before = set(threading.enumerate())
+    with Prefetched(endless(), depth=2) as prefetched:
+        assert [next(prefetched), next(prefetched)] == [0, 1]
+        assert len(_readers()) == 1
+    assert set(threading.enumerate()) == before
+    assert closed == ["condtrack-frame-reader"]  # the generator was closed in its own thread
+    assert len(produced) <= 2 + 2 + 1  # read ahead by at most the queue's depth and the item in hand
+
+    with pytest.raises(ZeroDivisionError), Prefetched(endless()) as prefetched:  # the consumer fails mid-way
+        next(prefetched) / 0
+    assert set(threading.enumerate()) == before

@@ -1,34 +1,61 @@
 """The ``condtrack`` command line: a Click group of thin commands, one module each (console script ``condtrack_cli.cli:main``).
 
 Each command parses its options, calls the library and prints; no numerics here.
+A command's module is imported only when that command runs or shows its help:
+``condtrack --help`` and ``--version`` load neither the library nor numpy.
 """
 
 from __future__ import annotations
 
 import sys
+from importlib import import_module
 
 import click
 
 from condtrack_cli import __version__
-from condtrack_cli.cli.compare import compare_command
-from condtrack_cli.cli.eval import eval_command
-from condtrack_cli.cli.info import info_command
-from condtrack_cli.cli.render import render_command
-from condtrack_cli.cli.stages import stages
-from condtrack_cli.cli.synth import synth
-from condtrack_cli.cli.track import track
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.interrupts import exit_code, raise_on_sigterm
 
+#: Command name -> (its object as ``module:attribute`` under condtrack_cli.cli, the first paragraph of its help).
+#: The paragraph is what ``condtrack --help`` lists; a test keeps it equal to the command's own.
+COMMANDS = {
+    "compare": ("compare:compare_command", "Compare two track files A and B (.csv, .h5 or .hdf5, any combination)."),
+    "eval": ("eval:eval_command",
+             "Score PRED (a condtrack .csv or .h5) against the ground truth GT with the TAP-Vid metrics."),
+    "info": ("info:info_command", "Print what the track file TRACKS (.h5 or .csv) holds: versions, input, points, config."),
+    "render": ("render:render_command",
+               "Draw the tracks of TRACKS (.h5 or .csv) on the frames of INPUT, the sequence they were tracked on."),
+    "stages": ("stages:stages", "List the registered stages per kind (built-in and from entry points)."),
+    "synth": ("synth:synth", "Write a synthetic scene with exact ground truth: frames, queries.csv, tracks.csv, labels.csv."),
+    "track": ("track:track", "Track points through INPUT, a folder of frames or a video file."),
+}
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+
+class LazyGroup(click.Group):
+    """A group whose commands (``COMMANDS``) are imported on first use; its help lists them without importing any."""
+
+    def list_commands(self, ctx: click.Context) -> list[str]:
+        return sorted(COMMANDS)
+
+    def get_command(self, ctx: click.Context, name: str) -> click.Command | None:
+        if name not in COMMANDS:
+            return None
+        module, _, attribute = COMMANDS[name][0].partition(":")
+        return getattr(import_module(f"condtrack_cli.cli.{module}"), attribute)
+
+    def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
+        """The Commands section, shortened as Click shortens a command's help, from ``COMMANDS``."""
+        limit = formatter.width - 6 - max(map(len, COMMANDS))
+        rows = [(name, click.Command(name, help=summary).get_short_help_str(limit))
+                for name, (_, summary) in sorted(COMMANDS.items())]
+        with formatter.section("Commands"):
+            formatter.write_dl(rows)
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="condtrack")
 def cli() -> None:
     """Batch point tracking with conditional filters (Arnaud, Mémin & Cernuschi-Frías, RFIA 2004)."""
-
-
-for _command in (track, eval_command, compare_command, render_command, info_command, synth, stages):
-    cli.add_command(_command)
 
 
 def main() -> None:

@@ -5,7 +5,6 @@ from __future__ import annotations
 import click
 
 from condtrack_cli import registry
-from condtrack_cli.config import default_yaml
 
 
 @click.command("stages")
@@ -13,6 +12,8 @@ from condtrack_cli.config import default_yaml
 def stages(default_config: bool) -> None:
     """List the registered stages per kind (built-in and from entry points)."""
     if default_config:
+        from condtrack_cli.config import default_yaml
+
         click.echo(default_yaml(), nl=False)
         return
     for kind in registry.KINDS:

@@ -4,6 +4,8 @@ A frames stage is registered with ``register("frames", name, SettingsModel)`` on
 factory called ``factory(settings, path) -> FrameSource``; it raises
 :class:`condtrack_cli.errors.CondtrackError` naming the path when the input cannot
 be read. Frames are in the package's pixel convention (``condtrack_cli/types.py``).
+The pipeline iterates a source (``iter``, ``reversed_from``) on a reader thread,
+one frame ahead of the tracking (``prefetch.py``); its errors reach the caller unchanged.
 """
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
-"""Writers and readers of track files (CSV and HDF5); see docs/schema.md."""
+"""Writers and readers of track files (CSV and HDF5); see docs/schema.md.
 
-from condtrack_cli.io.write import write_tracks  # noqa: F401
+Imports nothing: ``condtrack_cli.io.formats`` stays light for the command line.
+"""

@@ -1,0 +1,70 @@
+"""Start-up: ``condtrack --help`` loads no numerics library, and each command loads only what it runs."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import click
+import pytest
+from click.testing import CliRunner
+
+from condtrack_cli.cli import COMMANDS, LazyGroup, cli
+
+#: Libraries ``condtrack --help`` must not import (each costs tens of milliseconds).
+HEAVY = ("numpy", "cv2", "scipy", "h5py", "pydantic")
+
+#: Runs the console entry point with the given arguments, then prints on stderr the modules it imported.
+_PROBE = """
+import json, sys
+from condtrack_cli.cli import main
+sys.argv = ["condtrack", *sys.argv[1:]]
+try:
+    main()
+except SystemExit as exit_:
+    code = exit_.code
+print(json.dumps({"code": code, "modules": sorted(sys.modules)}), file=sys.stderr)
+"""
+
+
+def imported_by(*args: str) -> set[str]:
+    """The modules a fresh ``condtrack ARGS`` process imported (it must exit 0)."""
+    done = subprocess.run([sys.executable, "-c", _PROBE, *args], capture_output=True, text=True, timeout=300)
+    report = json.loads(done.stderr.splitlines()[-1])
+    assert report["code"] == 0, done.stderr
+    return set(report["modules"])
+
+
+@pytest.mark.parametrize("args", [["--help"], ["--version"], ["info", "--help"], ["render", "--help"],
+                                  ["synth", "--help"], ["stages", "--help"]])
+def test_help_and_version_import_no_numerics(args):
+    loaded = imported_by(*args)
+    assert not [name for name in HEAVY if name in loaded]
+    commands = {f"condtrack_cli.cli.{spec.partition(':')[0]}" for spec, _ in COMMANDS.values()}
+    wanted = {f"condtrack_cli.cli.{args[0]}"} if len(args) == 2 else set()
+    assert commands & loaded == wanted  # a command's help imports its own module, no other
+
+
+def test_a_csv_run_imports_neither_hdf5_nor_the_other_commands(tmp_path):
+    from condtrack_cli.frames.synthetic import make_scene, write_scene
+
+    folder = write_scene(make_scene("camera_motion", seed=0, size=(96, 72), n_frames=3), tmp_path / "clip")
+    loaded = imported_by("track", str(folder), "-m", "stk", "-o", str(tmp_path / "out.csv"), "-q")
+    assert {"numpy", "cv2"} <= loaded  # it did track
+    assert not {"h5py", "rich", "matplotlib", "dask"} & loaded
+    assert not [name for name in loaded if name.startswith("condtrack_cli.cli.") and name != "condtrack_cli.cli.track"]
+
+
+def test_the_lazy_help_lists_what_the_commands_say():
+    eager = click.Group(cli.name, help=cli.help, params=cli.params, context_settings=cli.context_settings)
+    for name in COMMANDS:
+        command = LazyGroup.get_command(cli, None, name)
+        assert command.name == name
+        eager.add_command(command)
+    assert CliRunner().invoke(cli, ["--help"]).output == CliRunner().invoke(eager, ["--help"]).output
+
+
+def test_an_unknown_command_is_refused():
+    result = CliRunner().invoke(cli, ["trak"])
+    assert result.exit_code == 2 and "No such command 'trak'" in result.output
