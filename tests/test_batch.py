@@ -255,3 +255,23 @@ def test_dask_run_writes_the_same_bytes_as_the_local_run(clips, tmp_path):
     assert "[4/4]" in result.stderr
     assert outputs(local) == outputs(remote) and len(outputs(local)) == 4
     assert sorted(r["input"] for r in manifest(remote)) == sorted(clips)
+
+
+def test_skip_existing_redoes_another_input_with_the_same_output_name(tmp_path):
+    """Issue 28.1: the resume check compares the input's identity (path, frames' names, sizes, mtimes), not the name."""
+    import h5py
+
+    first, second = make_clips(tmp_path / "a", 1)[0], make_clips(tmp_path / "b", 2)[1]
+    out_dir = tmp_path / "tracks"
+    args = ["-m", "stk", "--out-dir", str(out_dir), "--skip-existing", "-q"]
+    assert run_cli("track", first, *args).returncode == 0
+    assert run_cli("track", first, *args).returncode == 0  # the same input: skipped
+    assert run_cli("track", second, *args).returncode == 0  # clip001/frames, also written as frames.h5
+    assert [(r["input"], r["status"]) for r in manifest(out_dir)] == [
+        (first, "ok"), (first, "skipped"), (second, "ok")]
+    with h5py.File(out_dir / "frames.h5") as f:
+        assert f.attrs["input"] == second
+    frame = Path(second) / "00001.png"
+    frame.write_bytes((Path(second) / "00002.png").read_bytes())  # a frame changed: its size or mtime differs
+    assert run_cli("track", second, *args).returncode == 0
+    assert manifest(out_dir)[-1]["status"] == "ok"
