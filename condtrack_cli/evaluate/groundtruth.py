@@ -13,6 +13,12 @@ truth. A missing row means "no ground truth for that frame": the frame is not
 scored. ``visible`` is 0 or 1; x and y must be finite on visible rows and may be
 ``nan`` on occluded ones.
 
+Before scoring, ``check_queries`` makes sure the ids mean the same points: each
+predicted point's query (HDF5: its ``/queries`` row; CSV: its first row) must lie
+within ``QUERY_TOLERANCE_PX`` of the ground truth on the query frame wherever the
+truth has the point visible there. Points detected on frame 0 (no ``-p``) are
+numbered 0.., and their ids coincide with the truth's by chance only.
+
 Matching a prediction to the ground truth (``align``) is by ``point_id``:
 predicted points absent from the GT are ignored; GT points absent from the
 prediction (no row at all) are not scored and are listed in
@@ -36,6 +42,10 @@ from condtrack_cli.types import Tracks
 
 #: Columns a ground-truth CSV must have.
 GT_COLUMNS = ("point_id", "frame", "x", "y", "visible")
+
+#: Largest distance (px) between a predicted point's query and its ground truth on the query frame
+#: (queries rounded to whole pixels pass: at most 0.71 px away).
+QUERY_TOLERANCE_PX = 1.0
 
 
 @dataclass(frozen=True)
@@ -270,3 +280,31 @@ def align(pred: Tracks, gt: GroundTruth) -> Aligned:
         gt_known=_pad_frames(gt.known[gt_index], n_frames, False),
         missing_ids=np.setdiff1d(gt.point_id, common),
     )
+
+
+def check_queries(pred: Tracks, gt: GroundTruth, tolerance: float = QUERY_TOLERANCE_PX) -> None:
+    """Refuse a prediction whose queries are not on the ground truth of the same point_id (module docstring).
+
+    Points without any position, absent from the truth, or whose truth is not
+    visible on their query frame are not checked. CondtrackError names the
+    first point_id whose query is more than ``tolerance`` px from its truth.
+    """
+    present = pred.has_state.any(axis=1)
+    ids = np.asarray(pred.queries.point_id, np.int64)[present]
+    _, pred_index, gt_index = np.intersect1d(ids, gt.point_id, return_indices=True)
+    pred_index = np.flatnonzero(present)[pred_index]
+    frame = np.asarray(pred.queries.frame, np.int64)[pred_index]
+    on_truth = frame < gt.gt_xy.shape[1]
+    frame, query_xy = frame[on_truth], np.asarray(pred.queries.xy, np.float64)[pred_index[on_truth]]
+    gt_index = gt_index[on_truth]
+    truth_xy = gt.gt_xy[gt_index, frame]
+    distance = np.linalg.norm(query_xy - truth_xy, axis=1)
+    wrong = gt.visible[gt_index, frame] & ~(distance <= tolerance)
+    if wrong.any():
+        i = int(np.argmax(wrong))
+        raise CondtrackError(
+            f"point_id {gt.point_id[gt_index[i]]}: the prediction's query on frame {frame[i]} "
+            f"({query_xy[i, 0]:.2f}, {query_xy[i, 1]:.2f}) is {distance[i]:.2f} px from the ground truth "
+            f"({truth_xy[i, 0]:.2f}, {truth_xy[i, 1]:.2f}), more than {tolerance:g} px: track from the ground "
+            "truth's queries (-p); detected points are numbered 0.. and their ids mean nothing to the truth"
+        )
