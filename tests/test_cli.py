@@ -88,6 +88,10 @@ def test_queries_are_tracked_forward_and_backward_from_their_frame(shifted_folde
         ("frame,x,y\n0,abc,3\n", "row 2, column 'x': 'abc' is not a number"),
         ("frame,x,y\n0,1000,3\n", "row 2: point (1000, 3) is outside"),
         ("frame,x,y\n99,10,3\n", "row 2: frame 99 is outside the sequence"),
+        # issue 28.3: a misspelt point_id would renumber the points; a repeated column is ambiguous
+        ("frame,x,y,pointid\n0,10,3,5\n", "q.csv: unknown column 'pointid'"),
+        ("frame,x,y,x\n0,10,3,12\n", "q.csv: column 'x' appears twice in the header"),
+        ("point_id,frame,x,y,point_id\n1,0,10,3,2\n", "column 'point_id' appears twice"),
     ],
 )
 def test_bad_queries_are_refused_without_output(shifted_folder, tmp_path, content, message):
