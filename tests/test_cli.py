@@ -163,3 +163,27 @@ def test_stk_accuracy_on_the_samples(tmp_path, sample, floor):
     assert run_cli("track", str(folder), "-p", str(folder / "queries.csv"), "-m", "stk", "-o", str(out), "-q").returncode == 0
     result, _ = score_tracks(read_tracks(out)[0], load_gt_csv(folder / "tracks.csv"))
     assert result["delta_avg"] >= floor
+
+
+def _track_csv(path, rows):
+    """A condtrack track CSV with ``rows`` of (point_id, frame, x, y), covariances I, visible, clf."""
+    path.write_text(",".join(CSV_COLUMNS) + "\n" + "".join(f"{p},{f},{x},{y},1,0,1,1,clf\n" for p, f, x, y in rows))
+    return path
+
+
+@pytest.mark.parametrize("command", ["eval", "render", "info", "compare"])
+def test_a_track_csv_with_a_repeated_point_and_frame_is_refused(shifted_folder, tmp_path, command):
+    """Issue 28.4: every command that reads a track CSV refuses a second row for one (point_id, frame)."""
+    folder, _ = shifted_folder
+    rows = [(p, f, 100.0 + f, 50.0 + 10 * p) for p in (0, 1) for f in range(6)]
+    good = _track_csv(tmp_path / "good.csv", rows)
+    bad = _track_csv(tmp_path / "bad.csv", rows[:9] + [(1, 1, 140.0, 60.0)] + rows[9:])
+    truth = tmp_path / "gt.csv"
+    truth.write_text("point_id,frame,x,y,visible\n" + "".join(f"{p},{f},{x},{y},1\n" for p, f, x, y in rows))
+    args = {"eval": [str(bad), str(truth)], "render": [str(bad), str(folder), "-o", str(tmp_path / "out.mp4")],
+            "info": [str(bad)], "compare": [str(bad), str(good)]}[command]
+    result = run_cli(command, *args)
+    assert result.returncode == (2 if command == "compare" else 1)  # compare: 1 means "differ"
+    assert result.stderr == "Error: " + f"{bad}: row 11: a second row for point_id 1, frame 1\n"
+    assert not (tmp_path / "out.mp4").exists()
+    assert run_cli(command, *[str(good) if a == str(bad) else a for a in args]).returncode == 0

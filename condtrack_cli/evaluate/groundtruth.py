@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from condtrack_cli.errors import CondtrackError, read_error
+from condtrack_cli.io.read import repeated_rows
 from condtrack_cli.types import Tracks
 
 #: Columns a ground-truth CSV must have.
@@ -161,11 +162,7 @@ def load_gt_csv(path: str | Path) -> GroundTruth:
     point_id, point_index = np.unique(pid.astype(np.int64), return_inverse=True)
     frame = frame.astype(np.int64)
     n_points, n_frames = len(point_id), int(frame.max()) + 1
-    flat = point_index * n_frames + frame  # (N,) cell of each row
-    order = np.argsort(flat, kind="stable")
-    duplicate = np.zeros(len(flat), bool)
-    duplicate[order[1:]] = flat[order[1:]] == flat[order[:-1]]
-    _refuse_rows(duplicate, lines, path, "a second row for the same point_id and frame")
+    _refuse_rows(repeated_rows(point_index, frame), lines, path, "a second row for the same point_id and frame")
 
     gt_xy = np.full((n_points, n_frames, 2), np.nan)
     visible = np.zeros((n_points, n_frames), bool)

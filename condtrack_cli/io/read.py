@@ -3,8 +3,9 @@
 A CSV holds no frame count: its tracks span frames 0 .. the last frame that has
 a row. Nor does it hold queries: a point's query is taken to be its first row
 (frame 0 once backward tracking filled the frames before the query). A CSV
-whose header is not the schema's exact header line, and an HDF5 file of an
-unknown ``schema_version``, are refused (docs/schema.md). h5py is imported
+whose header is not the schema's exact header line, with a negative frame or a
+second row for one (point_id, frame), and an HDF5 file of an unknown
+``schema_version``, are refused (docs/schema.md). h5py is imported
 only by the functions that open an HDF5 file (start-up time, issue 13).
 """
 
@@ -22,6 +23,14 @@ from condtrack_cli.io.formats import is_hdf5, track_format
 from condtrack_cli.io.write import CSV_COLUMNS
 from condtrack_cli.registry import BUILTIN_METHOD_CODES, method_codes
 from condtrack_cli.types import Queries, SequenceInfo, Tracks
+
+
+def repeated_rows(point_id: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """(N,) bool: the rows whose (point_id, frame) pair an earlier row already has."""
+    order = np.lexsort((frame, point_id))  # stable: the first of equal rows stays unmarked
+    repeated = np.zeros(len(frame), bool)
+    repeated[order[1:]] = (point_id[order[1:]] == point_id[order[:-1]]) & (frame[order[1:]] == frame[order[:-1]])
+    return repeated
 
 
 def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
@@ -43,6 +52,13 @@ def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
         visible = table[:, 7].astype(np.int64).astype(bool)
     except ValueError as error:
         raise CondtrackError(f"{path}: a value is not a number ({error})") from None
+    if (frames < 0).any():
+        bad = int(np.argmax(frames < 0))
+        raise CondtrackError(f"{path}: row {bad + 2}: frame {frames[bad]} is negative")
+    repeated = repeated_rows(ids, frames)
+    if repeated.any():
+        bad = int(np.argmax(repeated))
+        raise CondtrackError(f"{path}: row {bad + 2}: a second row for point_id {ids[bad]}, frame {frames[bad]}")
     method = _codes_of(path, table[:, 8])
     point_ids, first_row, point_index = np.unique(ids, return_index=True, return_inverse=True)
     n_points, n_frames = len(point_ids), (int(frames.max()) + 1 if len(frames) else 0)
