@@ -187,3 +187,27 @@ def test_a_track_csv_with_a_repeated_point_and_frame_is_refused(shifted_folder, 
     assert result.stderr == "Error: " + f"{bad}: row 11: a second row for point_id 1, frame 1\n"
     assert not (tmp_path / "out.mp4").exists()
     assert run_cli(command, *[str(good) if a == str(bad) else a for a in args]).returncode == 0
+
+
+def test_output_on_an_input_is_refused_and_a_symlinked_output_is_written_through(shifted_folder, tmp_path):
+    """Issue 28.5: -o naming the queries file (or a link to it) is refused; -o on a link replaces its target."""
+    folder, _ = shifted_folder
+    queries = tmp_path / "q.csv"
+    queries.write_text("frame,x,y\n0,120,100\n")
+    before = queries.read_bytes()
+    alias = tmp_path / "alias.csv"
+    alias.symlink_to(queries)
+    for out in (queries, alias):
+        result = run_cli("track", str(folder), "-p", str(queries), "-m", "stk", "-o", str(out))
+        assert result.returncode == 1 and result.stderr == (
+            f"Error: -o {out}: the same file as the input -p {queries}; writing it would destroy the input\n")
+        assert queries.read_bytes() == before
+    target = tmp_path / "kept" / "tracks.csv"
+    target.parent.mkdir()
+    target.write_text("old\n")
+    link = tmp_path / "latest.csv"
+    link.symlink_to(target)
+    assert run_cli("track", str(folder), "-p", str(queries), "-m", "stk", "-o", str(link), "-q").returncode == 0
+    assert link.is_symlink() and link.readlink() == target
+    assert target.read_text().splitlines()[0] == ",".join(CSV_COLUMNS)
+    assert not [p for p in tmp_path.rglob(".*.part")]

@@ -10,6 +10,7 @@ from condtrack_cli import registry
 from condtrack_cli.batch_command import batch_options, run_batch, single_run_threads
 from condtrack_cli.config import Config, check_method, load_config
 from condtrack_cli.errors import CondtrackError, read_error
+from condtrack_cli.io.atomic import refuse_overwriting_inputs
 from condtrack_cli.progress import Progress, show_warnings
 
 
@@ -66,6 +67,8 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     config: Config = load_config(config_path, list(overrides) + (["filter.smooth=true"] if smooth else []), method)
     if len(inputs) == 1 and out_dir is None:
         single_run_threads(threads, batch)
+        refuse_overwriting_inputs({"-o": output_path, "--overlay": overlay_path},
+                                  {"INPUT": inputs[0], "-p": queries_path, "-c": config_path})
         progress = None if quiet else Progress
         summary = track_input(inputs[0], config, queries_path, output_path, seed, progress, overlay_path)
         if not quiet:
