@@ -15,6 +15,7 @@ two equal.
 from __future__ import annotations
 
 import copy
+from collections.abc import Hashable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Mapping
@@ -181,6 +182,35 @@ def resolve(raw: Mapping[str, Any]) -> Config:
     return Config(stages=stages, method=method, filters=filters, output=output, smooth=smooth)
 
 
+class DuplicateKey(yaml.constructor.ConstructorError):
+    """A mapping that gives one key twice (PyYAML would keep the last silently)."""
+
+    def __init__(self, key: Any, line: int):
+        super().__init__(problem=f"key {key!r} given twice")
+        self.key, self.line = key, line
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping with :class:`DuplicateKey`."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue  # '<<' merges another mapping, whose keys the explicit ones may override
+            key = self.construct_object(key_node, deep=deep)
+            if isinstance(key, Hashable):
+                if key in seen:
+                    raise DuplicateKey(key, key_node.start_mark.line + 1)
+                seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def parse_yaml(text: str) -> Any:
+    """``text`` parsed as YAML (safe types only); a key given twice raises :class:`DuplicateKey`."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)
+
+
 def parse_override(text: str) -> tuple[list[str], Any]:
     """``'motion.levels=3'`` -> (['motion', 'levels'], 3); the value is read as YAML."""
     key, sep, value = text.partition("=")
@@ -188,7 +218,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if not sep or not all(path):
         raise CondtrackError(f"--set {text!r}: expected section.key=value")
     try:
-        parsed = yaml.safe_load(value)
+        parsed = parse_yaml(value)
+    except DuplicateKey as error:
+        raise CondtrackError(f"--set {text!r}: key {error.key!r} given twice") from None
     except yaml.YAMLError:
         raise CondtrackError(f"--set {text!r}: the value is not valid YAML") from None
     return path, parsed
@@ -214,7 +246,9 @@ def read_yaml(path: str | Path) -> dict:
     except OSError as error:
         raise read_error(error, f"cannot read config file {str(path)!r}: {error.strerror or error}") from None
     try:
-        raw = yaml.safe_load(text)
+        raw = parse_yaml(text)
+    except DuplicateKey as error:
+        raise CondtrackError(f"config file {str(path)!r}, line {error.line}: key {error.key!r} given twice") from None
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark else ""

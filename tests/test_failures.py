@@ -65,6 +65,10 @@ def test_input_failures(tmp_path):
         ("", ["--set", "filter.stk.levels=0"], "'filter.stk.levels'"),
         ("", ["--set", "filter.stk.win_size=500"], "does not fit in the 320x240 frame"),
         ("", ["-m", "nope"], "'filter.method': unknown method 'nope'"),
+        # issue 28.6: PyYAML keeps the last of two equal keys silently
+        ("motion:\n  levels: 3\n  levels: 2\n", [], "c.yaml', line 3: key 'levels' given twice"),
+        ("filter: {stk: {win_size: 31, win_size: 15}}\n", [], "line 1: key 'win_size' given twice"),
+        ("", ["--set", "motion={levels: 3, levels: 2}"], "key 'levels' given twice"),
     ],
 )
 def test_config_failures(tmp_path, yaml_text, extra, message):
