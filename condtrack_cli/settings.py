@@ -12,12 +12,12 @@ from pydantic import BaseModel, ConfigDict
 
 
 class StageSettings(BaseModel):
-    """Base of every stage's settings: frozen, strict types, unknown keys refused.
+    """Base of every stage's settings: frozen, strict types, unknown keys and non-finite numbers refused.
 
     ``frame_windows`` names the fields that are window sides in pixels and must
     fit in the frame; :meth:`condtrack_cli.config.Config.check_fits_frame` checks
     them once the frame size is known.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
     frame_windows: ClassVar[tuple[str, ...]] = ()

@@ -69,6 +69,9 @@ def test_input_failures(tmp_path):
         ("motion:\n  levels: 3\n  levels: 2\n", [], "c.yaml', line 3: key 'levels' given twice"),
         ("filter: {stk: {win_size: 31, win_size: 15}}\n", [], "line 1: key 'win_size' given twice"),
         ("", ["--set", "motion={levels: 3, levels: 2}"], "key 'levels' given twice"),
+        # issue 28.8: a non-finite number is no setting
+        ("measure: {gamma: .inf}\n", ["-m", "stk"], "'measure.gamma': Input should be a finite number (got inf)"),
+        ("", ["-m", "stk", "--set", "filter.stk.epsilon=.nan"], "'filter.stk.epsilon': Input should be a finite number"),
     ],
 )
 def test_config_failures(tmp_path, yaml_text, extra, message):
