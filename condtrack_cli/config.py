@@ -15,6 +15,7 @@ two equal.
 from __future__ import annotations
 
 import copy
+import logging
 from collections.abc import Hashable
 from dataclasses import dataclass
 from pathlib import Path
@@ -260,19 +261,42 @@ def read_yaml(path: str | Path) -> dict:
     return raw
 
 
+def filters_used_by(method: str) -> tuple[str, ...]:
+    """The ``filter.<name>`` sections that ``method`` reads: its own and its settings' ``filter_sections``."""
+    return (method, *registry.get("filter", method).settings.filter_sections)
+
+
+def _warn_unused_override(config: Config, path: list[str], text: str) -> None:
+    """Warn (logger ``condtrack``) when ``--set`` ``text`` sets a ``filter.<name>`` section that the method does not read."""
+    if len(path) < 3 or path[0] != "filter" or path[1] not in valid_methods() or path[1] in filters_used_by(config.method):
+        return
+    users = [name for name in valid_methods() if path[1] in filters_used_by(name)]
+    logging.getLogger("condtrack").warning(
+        "--set %s has no effect: method '%s' does not use filter.%s (-m %s would)", text, config.method, path[1],
+        " or -m ".join(users),
+    )
+
+
 def load_config(
     path: str | Path | Mapping[str, Any] | None = None, overrides: list[str] = (), method: str | None = None,
 ) -> Config:
-    """The validated config: defaults, then the file (or a nested mapping), then ``--set`` overrides, then ``-m``."""
+    """The validated config: defaults, then the file (or a nested mapping), then ``--set`` overrides, then ``-m``.
+
+    An override of a filter section that the chosen method does not use gets a warning.
+    """
     if path is not None and not isinstance(path, (str, Path, Mapping)):
         raise CondtrackError(f"config: expected a YAML path or a nested mapping, got {type(path).__name__}")
     raw = read_yaml(path) if isinstance(path, (str, Path)) else dict(path or {})
     raw = copy.deepcopy(raw)
-    for text in overrides:
-        _apply_override(raw, *parse_override(text))
+    parsed = [parse_override(text) for text in overrides]
+    for override in parsed:
+        _apply_override(raw, *override)
     if method is not None:
         _apply_override(raw, ["filter", "method"], method)
-    return resolve(raw)
+    config = resolve(raw)
+    for text, (key_path, _) in zip(overrides, parsed):
+        _warn_unused_override(config, key_path, text)
+    return config
 
 
 def _yaml_scalar(value: Any) -> str:

@@ -218,3 +218,19 @@ def test_a_missing_input_file_exits_2_in_every_command(tmp_path, args):
     args = [a.format(missing=missing, tmp=tmp_path) for a in args]
     _one_error_line(run_cli(*args), 2, "missing.file")
     assert not list(tmp_path.iterdir())
+
+
+def test_a_set_on_a_filter_the_method_does_not_use_is_warned(tmp_path):
+    """Issue 28.7: --set filter.stk.* under -m auto changes nothing; say so and name the method that would use it."""
+    out = tmp_path / "out.csv"
+    result = run_cli("track", str(SAMPLE), "-m", "mdr", "--set", "filter.stk.win_size=31", "--set", "filter.cnlf.particles=50",
+                     "--set", "filter.mdr.initial_std=1", "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    warnings = [line for line in result.stderr.splitlines() if "has no effect" in line]
+    assert warnings == [
+        "warning: --set filter.stk.win_size=31 has no effect: method 'mdr' does not use filter.stk (-m stk would)",
+        "warning: --set filter.cnlf.particles=50 has no effect: method 'mdr' does not use filter.cnlf "
+        "(-m auto or -m cnlf would)",
+    ]
+    result = run_cli("track", str(SAMPLE), "-m", "stk", "--set", "filter.stk.win_size=31", "-o", str(out))
+    assert result.returncode == 0 and "has no effect" not in result.stderr
