@@ -275,3 +275,13 @@ def test_skip_existing_redoes_another_input_with_the_same_output_name(tmp_path):
     frame.write_bytes((Path(second) / "00002.png").read_bytes())  # a frame changed: its size or mtime differs
     assert run_cli("track", second, *args).returncode == 0
     assert manifest(out_dir)[-1]["status"] == "ok"
+
+
+def test_batch_only_options_are_refused_where_they_would_be_ignored(clips, tmp_path):
+    """Issue 28.9: -j with one input and no --out-dir, and -j with --scheduler, did nothing and said nothing."""
+    result = run_cli("track", clips[0], "-m", "stk", "-j", "2", "-o", str(tmp_path / "out.csv"))
+    assert result.returncode == 1 and result.stderr == "Error: --jobs: a batch option (give --out-dir)\n"
+    result = run_cli("track", *clips[:2], "-m", "stk", "--out-dir", str(tmp_path / "d"), "-j", "2",
+                     "--scheduler", "tcp://127.0.0.1:9")
+    assert result.returncode == 1 and result.stderr.startswith("Error: -j/--jobs: not with --scheduler")
+    assert not (tmp_path / "out.csv").exists() and not (tmp_path / "d").exists()

@@ -19,12 +19,14 @@ from condtrack_cli.cli.synth import synth
 from condtrack_cli.cli.track import track
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.interrupts import exit_code, raise_on_sigterm
+from condtrack_cli.progress import show_warnings
 
 
 @click.group(context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, prog_name="condtrack")
 def cli() -> None:
     """Batch point tracking with conditional filters (Arnaud, Mémin & Cernuschi-Frías, RFIA 2004)."""
+    show_warnings(True)  # every command's warnings as ``warning: ...`` lines (track -q silences them)
 
 
 for _command in (track, eval_command, compare_command, render_command, info_command, synth, stages):

@@ -46,7 +46,7 @@ class _MethodChoice(click.Choice):
 @click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
 @click.option("--out-dir", type=click.Path(file_okay=False), help="Batch: folder of the outputs (created if missing), one <input name>.<format> each, and manifest.jsonl.")
 @click.option("--format", "batch_format", type=click.Choice(["h5", "csv"]), default="h5", show_default=True, help="Batch: output format.")
-@click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True, help="Batch: inputs processed in parallel.")
+@click.option("-j", "--jobs", type=click.IntRange(min=1), help="Batch: inputs processed in parallel (default 1; not with --scheduler).")
 @batch_options
 @click.option("-q", "--quiet", is_flag=True, help="No progress or summary on stderr.")
 def track(inputs, config_path, queries_path, method, output_path, overlay_path, seed, smooth, overrides, list_path, out_dir,
@@ -66,7 +66,7 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         raise CondtrackError("no INPUT given (a frame folder or a video file, or --from-list FILE)")
     config: Config = load_config(config_path, list(overrides) + (["filter.smooth=true"] if smooth else []), method)
     if len(inputs) == 1 and out_dir is None:
-        single_run_threads(threads, batch)
+        single_run_threads(threads, {**batch, "jobs": jobs})
         refuse_overwriting_inputs({"-o": output_path, "--overlay": overlay_path},
                                   {"INPUT": inputs[0], "-p": queries_path, "-c": config_path})
         progress = None if quiet else Progress
