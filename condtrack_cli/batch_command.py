@@ -144,8 +144,9 @@ def run_batch(
     if failed:
         if quiet:  # -q silences progress and the table, not the errors
             for r in ordered:
-                if r.status == "failed":
-                    click.echo(f"Error: {r.input}: {r.error}", err=True)
+                if r.status == "failed":  # named once: most messages start with the input already
+                    named = r.error.startswith(f"{r.input}:")
+                    click.echo(f"Error: {r.error}" if named else f"Error: {r.input}: {r.error}", err=True)
         click.echo(f"Error: {failed} of {len(ordered)} inputs failed (see {Path(out_dir) / 'manifest.jsonl'})", err=True)
         sys.exit(1)
 

@@ -25,7 +25,7 @@ import yaml
 from pydantic import BaseModel, Field, ValidationError
 
 from condtrack_cli import registry
-from condtrack_cli.errors import CondtrackError, read_error
+from condtrack_cli.errors import CondtrackError, plain, read_error
 from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.settings import StageSettings
 
@@ -119,7 +119,7 @@ def valid_methods() -> list[str]:
 def check_method(method: str) -> None:
     """CondtrackError naming the key ``filter.method`` and the valid methods when ``method`` is not registered."""
     if method not in valid_methods():
-        raise CondtrackError(f"config key 'filter.method': unknown method {method!r}; valid: {', '.join(valid_methods())}")
+        raise CondtrackError(f"config key 'filter.method': unknown method {plain(method)}; valid: {', '.join(valid_methods())}")
 
 
 def _format_validation_error(prefix: str, error: ValidationError, model: type[BaseModel]) -> str:
@@ -131,12 +131,12 @@ def _format_validation_error(prefix: str, error: ValidationError, model: type[Ba
     if first["type"] == "value_error" and not first["loc"]:  # a rule across keys: the message names them
         return f"config key '{key}': {first['ctx']['error']}"
     got = first.get("input")
-    return f"config key '{key}': {first['msg']} (got {got!r})"
+    return f"config key '{key}': {first['msg']} (got {plain(got)})"
 
 
 def _validate(prefix: str, model: type[StageSettings], params: Any) -> StageSettings:
     if not isinstance(params, dict):
-        raise CondtrackError(f"config key '{prefix}': expected a mapping of keys to values, got {params!r}")
+        raise CondtrackError(f"config key '{prefix}': expected a mapping of keys to values, got {plain(params)}")
     try:
         return model.model_validate(params)
     except ValidationError as error:
@@ -146,7 +146,7 @@ def _validate(prefix: str, model: type[StageSettings], params: Any) -> StageSett
 def _named_section(kind: str, raw: Any) -> StageConfig:
     raw = dict(raw or {}) if isinstance(raw, dict) or raw is None else raw
     if not isinstance(raw, dict):
-        raise CondtrackError(f"config key '{kind}': expected a mapping, got {raw!r}")
+        raise CondtrackError(f"config key '{kind}': expected a mapping, got {plain(raw)}")
     name = raw.pop("name", DEFAULT_NAMES[kind])
     try:
         spec = registry.get(kind, name)
@@ -164,13 +164,13 @@ def resolve(raw: Mapping[str, Any]) -> Config:
     stages = {kind: _named_section(kind, raw.get(kind)) for kind in NAMED_SECTIONS}
     filter_raw = raw.get("filter") or {}
     if not isinstance(filter_raw, dict):
-        raise CondtrackError(f"config key 'filter': expected a mapping, got {filter_raw!r}")
+        raise CondtrackError(f"config key 'filter': expected a mapping, got {plain(filter_raw)}")
     filter_raw = dict(filter_raw)
     method = filter_raw.pop("method", DEFAULT_METHOD)
     check_method(method)
     smooth = filter_raw.pop("smooth", False)
     if not isinstance(smooth, bool):
-        raise CondtrackError(f"config key 'filter.smooth': expected true or false, got {smooth!r}")
+        raise CondtrackError(f"config key 'filter.smooth': expected true or false, got {plain(smooth)}")
     filters = {}
     for name in registry.names("filter"):
         filters[name] = _validate(f"filter.{name}", registry.get("filter", name).settings, filter_raw.pop(name, None) or {})

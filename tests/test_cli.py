@@ -184,7 +184,7 @@ def test_a_track_csv_with_a_repeated_point_and_frame_is_refused(shifted_folder, 
             "info": [str(bad)], "compare": [str(bad), str(good)]}[command]
     result = run_cli(command, *args)
     assert result.returncode == (2 if command == "compare" else 1)  # compare: 1 means "differ"
-    assert result.stderr == "Error: " + f"{bad}: row 11: a second row for point_id 1, frame 1\n"
+    assert result.stderr == f"Error: {bad}: line 11 (point_id 1, frame 1): a second row for the same point_id and frame\n"
     assert not (tmp_path / "out.mp4").exists()
     assert run_cli(command, *[str(good) if a == str(bad) else a for a in args]).returncode == 0
 

@@ -234,3 +234,30 @@ def test_a_set_on_a_filter_the_method_does_not_use_is_warned(tmp_path):
     ]
     result = run_cli("track", str(SAMPLE), "-m", "stk", "--set", "filter.stk.win_size=31", "-o", str(out))
     assert result.returncode == 0 and "has no effect" not in result.stderr
+
+
+def test_messages_show_values_plainly_and_name_an_input_once(tmp_path):
+    """Issue 28.20: no ``np.str_('abc')`` in a message, and a quiet batch does not print "Error: empty: empty: ..."."""
+    tracks = tmp_path / "t.csv"
+    tracks.write_text("point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method\n0,0,1.0,2.0,1,0,1,1,abc\n")
+    result = run_cli("info", str(tracks))
+    assert result.returncode == 1 and result.stderr == (
+        f"Error: {tracks}: unknown method 'abc'; valid: stk, mdr, clf, cnlf\n")
+    h5 = tmp_path / "t.h5"
+    with h5py.File(h5, "w") as f:
+        f.attrs["schema_version"] = np.int64(3)
+    result = run_cli("info", str(h5))
+    assert result.stderr == f"Error: {h5}: schema_version 3 is not supported (this condtrack reads '1.0')\n"
+    empty = tmp_path / "empty"
+    empty.write_bytes(b"")
+    result = run_cli("track", str(empty), str(SAMPLE), "-m", "stk", "--out-dir", str(tmp_path / "out"), "-q")
+    errors = [line for line in result.stderr.splitlines() if line.startswith("Error: ")]
+    assert result.returncode == 1 and errors[0] == f"Error: {empty}: not a readable video (OpenCV could not open it)"
+    from condtrack_cli.config import load_config
+    from condtrack_cli.errors import CondtrackError
+
+    with pytest.raises(CondtrackError, match=r"^config key 'measure.gamma': Input should be greater than 0 \(got -1.0\)$"):
+        load_config({"measure": {"gamma": np.float64(-1)}})
+    tracks.write_text("point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method\n0,0,1.0,2.0,1,0,1,1,stk\n0,1,abc,2,1,0,1,1,stk\n")
+    result = run_cli("info", str(tracks))
+    assert result.stderr == f"Error: {tracks}: line 3, column 'x': 'abc' is not a number\n"

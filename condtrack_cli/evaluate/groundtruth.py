@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from condtrack_cli.errors import CondtrackError, read_error
-from condtrack_cli.io.read import repeated_rows
+from condtrack_cli.io.read import number_column, repeated_rows
 from condtrack_cli.types import Tracks
 
 #: Columns a ground-truth CSV must have.
@@ -98,25 +98,6 @@ def pixels_to_tapvid(xy: np.ndarray, width: int, height: int) -> np.ndarray:
     return (np.asarray(xy, np.float64) + 0.5) / np.array([width, height], np.float64)
 
 
-def _column(cells: np.ndarray, lines: np.ndarray, path: Path, name: str) -> np.ndarray:
-    """(N,) str cells of column ``name`` -> (N,) float64; CondtrackError naming the first bad line."""
-    try:
-        return cells.astype(np.float64)
-    except ValueError:
-        bad = next(i for i, cell in enumerate(cells) if not _is_float(cell))
-        raise CondtrackError(
-            f"{path}: line {lines[bad]}, column '{name}': {str(cells[bad])!r} is not a number"
-        ) from None
-
-
-def _is_float(cell: str) -> bool:
-    try:
-        float(cell)
-    except ValueError:
-        return False
-    return True
-
-
 def _refuse_rows(mask: np.ndarray, lines: np.ndarray, path: Path, what: str) -> None:
     """CondtrackError naming the first line where ``mask`` (N,) is True."""
     if mask.any():
@@ -149,7 +130,7 @@ def load_gt_csv(path: str | Path) -> GroundTruth:
         raise CondtrackError(f"{path}: line {wrong[0]} has {len(wrong[1])} fields, the header {len(header)}")
     lines = np.array([number for number, _ in body])  # (N,) file line of each row
     table = np.array([row for _, row in body], dtype=str)  # (N, C)
-    values = {name: _column(table[:, header.index(name)], lines, path, name) for name in GT_COLUMNS}
+    values = {name: number_column(table[:, header.index(name)], np.float64, lines, path, name) for name in GT_COLUMNS}
     pid, frame, vis = values["point_id"], values["frame"], values["visible"]
     xy = np.stack([values["x"], values["y"]], axis=-1)  # (N, 2)
     _refuse_rows(~np.isfinite(pid) | (pid != np.round(pid)), lines, path, "point_id is not an integer")

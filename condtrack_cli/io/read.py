@@ -19,7 +19,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from condtrack_cli import SCHEMA_VERSION
-from condtrack_cli.errors import CondtrackError, MissingInput
+from condtrack_cli.errors import CondtrackError, MissingInput, plain
 from condtrack_cli.io.formats import is_hdf5, track_format
 from condtrack_cli.io.write import CSV_COLUMNS
 from condtrack_cli.registry import BUILTIN_METHOD_CODES, method_codes
@@ -34,6 +34,24 @@ def repeated_rows(point_id: np.ndarray, frame: np.ndarray) -> np.ndarray:
     return repeated
 
 
+def number_column(cells: np.ndarray, dtype: type, lines: np.ndarray, path: Path, name: str) -> np.ndarray:
+    """(N,) str ``cells`` of column ``name`` as ``dtype``; CondtrackError naming the file line of the first bad cell."""
+    try:
+        return cells.astype(dtype)
+    except (ValueError, OverflowError):
+        bad = next(i for i, cell in enumerate(cells) if not _parses(cell, dtype))
+        kind = "a whole number (64-bit)" if np.issubdtype(dtype, np.integer) else "a number"
+        raise CondtrackError(f"{path}: line {lines[bad]}, column '{name}': {str(cells[bad])!r} is not {kind}") from None
+
+
+def _parses(cell: str, dtype: type) -> bool:
+    try:
+        np.array([cell]).astype(dtype)
+    except (ValueError, OverflowError):
+        return False
+    return True
+
+
 def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
     try:
         lines = path.read_text(encoding="ascii").splitlines()
@@ -41,25 +59,24 @@ def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
         raise CondtrackError(f"{path}: cannot read the track file ({error})") from None
     if not lines or tuple(lines[0].split(",")) != CSV_COLUMNS:
         raise CondtrackError(f"{path}: not a condtrack CSV (expected the header {','.join(CSV_COLUMNS)})")
-    cells = [line.split(",") for line in lines[1:] if line]
-    if any(len(row) != len(CSV_COLUMNS) for row in cells):
-        bad = next(i for i, row in enumerate(cells) if len(row) != len(CSV_COLUMNS))
-        raise CondtrackError(f"{path}: row {bad + 2} has {len(cells[bad])} fields, expected {len(CSV_COLUMNS)}")
-    table = np.array(cells, dtype=str).reshape(-1, len(CSV_COLUMNS))
-    try:
-        ids = table[:, 0].astype(np.int64)
-        frames = table[:, 1].astype(np.int64)
-        values = table[:, 2:7].astype(np.float64)
-        visible = table[:, 7].astype(np.int64).astype(bool)
-    except ValueError as error:
-        raise CondtrackError(f"{path}: a value is not a number ({error})") from None
-    if (frames < 0).any():
-        bad = int(np.argmax(frames < 0))
-        raise CondtrackError(f"{path}: row {bad + 2}: frame {frames[bad]} is negative")
-    repeated = repeated_rows(ids, frames)
-    if repeated.any():
-        bad = int(np.argmax(repeated))
-        raise CondtrackError(f"{path}: row {bad + 2}: a second row for point_id {ids[bad]}, frame {frames[bad]}")
+    numbered = [(number, line.split(",")) for number, line in enumerate(lines[1:], start=2) if line]
+    wrong = next(((number, row) for number, row in numbered if len(row) != len(CSV_COLUMNS)), None)
+    if wrong is not None:
+        raise CondtrackError(f"{path}: line {wrong[0]} has {len(wrong[1])} fields, expected {len(CSV_COLUMNS)}")
+    line_of = np.array([number for number, _ in numbered], dtype=np.int64)  # (N,) file line of each row
+    table = np.array([row for _, row in numbered], dtype=str).reshape(-1, len(CSV_COLUMNS))
+    ids, frames, x, y, cov_xx, cov_xy, cov_yy, visible = (
+        number_column(table[:, i], np.int64 if name in ("point_id", "frame", "visible") else np.float64, line_of,
+                      path, name)
+        for i, name in enumerate(CSV_COLUMNS[:8])
+    )
+    values = np.column_stack([x, y, cov_xx, cov_xy, cov_yy])
+    for bad, what in ((frames < 0, "frame is negative"), ((visible != 0) & (visible != 1), "visible is not 0 or 1"),
+                      (repeated_rows(ids, frames), "a second row for the same point_id and frame")):
+        if bad.any():
+            row = int(np.argmax(bad))
+            raise CondtrackError(f"{path}: line {line_of[row]} (point_id {ids[row]}, frame {frames[row]}): {what}")
+    visible = visible.astype(bool)
     method = _codes_of(path, table[:, 8])
     point_ids, first_row, point_index = np.unique(ids, return_index=True, return_inverse=True)
     n_points, n_frames = len(point_ids), (int(frames.max()) + 1 if len(frames) else 0)
@@ -84,7 +101,7 @@ def _codes_of(path: Path, names: np.ndarray) -> np.ndarray:
     codes = method_codes()
     unknown = set(np.unique(names)) - set(codes)
     if unknown:
-        raise CondtrackError(f"{path}: unknown method {sorted(unknown)[0]!r}; valid: {', '.join(codes)}")
+        raise CondtrackError(f"{path}: unknown method {plain(sorted(unknown)[0])}; valid: {', '.join(codes)}")
     return np.select([names == name for name in codes], np.arange(len(codes))).astype(np.int8)
 
 
@@ -114,7 +131,7 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
             version = meta.get("schema_version")
             if version != SCHEMA_VERSION:
                 raise CondtrackError(
-                    f"{path}: schema_version {version!r} is not supported (this condtrack reads {SCHEMA_VERSION!r})"
+                    f"{path}: schema_version {plain(version)} is not supported (this condtrack reads {SCHEMA_VERSION!r})"
                 )
             t = f["tracks"]
             queries_table = f["queries"][()]
