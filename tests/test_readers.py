@@ -99,3 +99,22 @@ def test_a_dangling_symlink_frame_is_an_error_naming_it(tmp_path):
     (tmp_path / "f1.png").symlink_to(tmp_path / "gone.png")
     with pytest.raises(CondtrackError, match=r"f1\.png: a broken symbolic link"):
         open_frames(FrameSettings(), tmp_path)
+
+
+def test_known_sidecar_files_are_skipped_without_a_warning(tmp_path, caplog):
+    """Issue 28.21: the shipped samples (frames beside queries.csv, tracks.csv, labels.csv, scene.json) read quietly;
+    any other file still gets the warning, and is still refused with non_image_files: refuse."""
+    import shutil
+
+    from conftest import SAMPLES
+
+    folder = tmp_path / "ring"
+    shutil.copytree(SAMPLES / "ring", folder)
+    assert {"queries.csv", "tracks.csv", "labels.csv", "scene.json"} <= {p.name for p in folder.iterdir()}
+    with caplog.at_level("WARNING", logger="condtrack"):
+        assert open_frames(FrameSettings(non_image_files="refuse"), folder).info.n_frames == 30
+    assert caplog.records == []
+    (folder / "notes.txt").write_text("hello")
+    with caplog.at_level("WARNING", logger="condtrack"):
+        open_frames(FrameSettings(), folder)
+    assert [r.getMessage() for r in caplog.records] == [f"{folder}: skipping 1 non-image file(s), e.g. 'notes.txt'"]
