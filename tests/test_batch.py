@@ -285,3 +285,23 @@ def test_batch_only_options_are_refused_where_they_would_be_ignored(clips, tmp_p
                      "--scheduler", "tcp://127.0.0.1:9")
     assert result.returncode == 1 and result.stderr.startswith("Error: -j/--jobs: not with --scheduler")
     assert not (tmp_path / "out.csv").exists() and not (tmp_path / "d").exists()
+
+
+def test_from_list_paths_are_relative_to_the_list_and_names_do_not_depend_on_the_working_directory(tmp_path):
+    """Issue 28.21: a list's relative paths are read from the list's folder, so the batch (inputs and output names)
+    is the same from any working directory."""
+    make_clips(tmp_path / "data", 2)
+    listing = tmp_path / "lists" / "clips.txt"
+    listing.parent.mkdir()
+    listing.write_text("# two clips\n../data/clip000/frames\n\n../data/clip001/frames\n")
+    names = []
+    for cwd in (tmp_path, tmp_path / "lists"):
+        out_dir = tmp_path / f"out_{cwd.name}"
+        result = subprocess.run(
+            [sys.executable, "-c", "from condtrack_cli.cli import main; main()", "track", "--from-list",
+             os.path.relpath(listing, cwd), "-m", "stk", "--out-dir", str(out_dir), "-q"],
+            capture_output=True, text=True, timeout=300, cwd=cwd)
+        assert result.returncode == 0, result.stderr
+        assert [r["status"] for r in manifest(out_dir)] == ["ok", "ok"]
+        names.append(sorted(p.name for p in out_dir.glob("*.h5")))
+    assert names == [["clip000_frames.h5", "clip001_frames.h5"]] * 2

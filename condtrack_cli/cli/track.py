@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import click
@@ -82,8 +83,10 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
 
 
 def _read_list(path: str) -> list[str]:
+    """The inputs of a --from-list file, one a line (blank lines and # comments skipped), relative to its folder."""
     try:
         lines = Path(path).read_text(encoding="utf-8").splitlines()
     except OSError as error:
         raise read_error(error, f"{path}: cannot read the input list ({error.strerror})") from None
-    return [line.strip() for line in lines if line.strip() and not line.lstrip().startswith("#")]
+    folder = os.path.dirname(path)
+    return [os.path.join(folder, line.strip()) for line in lines if line.strip() and not line.lstrip().startswith("#")]
