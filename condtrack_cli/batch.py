@@ -7,11 +7,13 @@
   whole input list, before ``--shard``, so every shard names alike.
 - Manifest: ``OUT_DIR/manifest.jsonl`` gets one JSON line per input when that
   input ends (``ClipRecord``), so a killed batch leaves a true manifest.
-- Resume: an input is skipped when its output exists and was made with the same
-  config hash (``hashes.config_hash``), condtrack version, seed and queries file
-  (``hashes.queries_hash``): read from the HDF5 root attributes, or for a CSV from the
-  manifest's last ``ok`` record of that output. Outputs are written atomically,
-  so an output that exists is whole.
+- Resume: an input is skipped when its output exists and was made from the same
+  input (``hashes.input_fingerprint``: resolved path, frames' names, sizes and
+  mtimes), config hash (``hashes.config_hash``), condtrack version, seed and
+  queries file (``hashes.queries_hash``): read from the HDF5 root attributes,
+  or for a CSV from the manifest's last ``ok`` record of that output; the input's
+  fingerprint always from that record (an output without one is redone).
+  Outputs are written atomically, so an output that exists is whole.
 - Shards: ``shard(items, i, n)`` keeps items i, i + n, i + 2n, ... of the list.
 - Where: ``run_local`` (a spawn process pool, or in-process for one job) or
   ``run_dask`` (one task per input on a running dask.distributed cluster); both
@@ -34,7 +36,7 @@ from typing import Callable
 from condtrack_cli import __version__
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.hashes import config_hash, queries_hash
+from condtrack_cli.hashes import config_hash, input_fingerprint, queries_hash
 from condtrack_cli.progress import show_warnings
 from condtrack_cli.run import track_input
 from condtrack_cli.threads import blas_environment, threads_in_use, use_threads
@@ -55,6 +57,7 @@ class BatchJob:
     queries_path: str | None
     seed: int
     threads: int | None  #: threads of this job (None: every core the process may use)
+    input_fingerprint: str = ""  #: ``hashes.input_fingerprint`` of the input when the batch was planned
 
 
 @dataclass(frozen=True)
@@ -73,6 +76,7 @@ class ClipRecord:
     version: str
     seed: int
     queries_hash: str
+    input_fingerprint: str = ""  #: ``hashes.input_fingerprint`` of the input
     visible: float | None = None  #: share of the tracked rows that are visible
     threads: dict = field(default_factory=dict)  #: what the job's process used: opencv, fft, omp
 
@@ -84,7 +88,8 @@ def _record(job: BatchJob, status: str, **values) -> ClipRecord:
     """The manifest record of ``job`` with ``status``; ``values`` give the other fields (queries_hash included)."""
     return ClipRecord(
         input=job.input, output=job.output, status=status, method=job.config.method,
-        config_hash=config_hash(job.config), version=__version__, seed=job.seed, **values,
+        config_hash=config_hash(job.config), version=__version__, seed=job.seed,
+        input_fingerprint=job.input_fingerprint, **values,
     )
 
 
@@ -164,9 +169,12 @@ def append_record(out_dir: Path, record: ClipRecord) -> None:
 
 
 def _stored_run(output: Path, manifest: list[dict]) -> dict | None:
-    """What made an existing ``output``: config_hash, version, seed, queries_hash, frames, points; None if unknown."""
+    """What made an existing ``output``: config_hash, version, seed, queries_hash, input_fingerprint, frames, points;
+    None if unknown."""
     if not output.is_file():
         return None
+    done = [r for r in manifest if r.get("status") == "ok" and Path(str(r.get("output"))).name == output.name]
+    last = done[-1] if done else {}
     if output.suffix in (".h5", ".hdf5"):
         import h5py
 
@@ -177,18 +185,19 @@ def _stored_run(output: Path, manifest: list[dict]) -> dict | None:
                     "config_hash": str(attrs.get("config_hash", "")), "version": str(attrs.get("condtrack_version", "")),
                     "seed": int(attrs.get("seed", -1)), "queries_hash": str(attrs.get("queries_hash", "")),
                     "frames": int(attrs.get("n_frames", 0)), "points": int(f["tracks/point_id"].shape[0]),
+                    "input_fingerprint": last.get("input_fingerprint"),
                 }
         except (OSError, KeyError):
             return None  # not a readable track file: redo it
-    done = [r for r in manifest if r.get("status") == "ok" and Path(str(r.get("output"))).name == output.name]
-    return done[-1] if done else None
+    return last or None
 
 
 def skipped_record(job: BatchJob, manifest: list[dict]) -> ClipRecord | None:
-    """A ``skipped`` record when ``job.output`` exists and was made by this version with these settings, else None."""
+    """A ``skipped`` record when ``job.output`` exists and was made from this input by this version with these
+    settings, else None."""
     stored = _stored_run(Path(job.output), manifest)
     wanted = {"config_hash": config_hash(job.config), "version": __version__, "seed": job.seed,
-              "queries_hash": queries_hash(job.queries_path)}
+              "queries_hash": queries_hash(job.queries_path), "input_fingerprint": job.input_fingerprint}
     if stored is None or any(stored.get(key) != value for key, value in wanted.items()):
         return None
     return _record(job, "skipped", error=None, seconds=0.0, frames=stored.get("frames"), points=stored.get("points"),
@@ -324,7 +333,8 @@ def plan_batch(
         raise CondtrackError(f"--out-dir '{out_dir}': cannot create the folder ({error.strerror})") from None
     if not os.access(out_dir, os.W_OK | os.X_OK):
         raise CondtrackError(f"--out-dir '{out_dir}' is not writable")
-    jobs = [BatchJob(i, str(out_dir / f"{n}{suffix}"), config, queries_path, seed, threads) for i, n in zip(inputs, names)]
+    jobs = [BatchJob(i, str(out_dir / f"{n}{suffix}"), config, queries_path, seed, threads, input_fingerprint(i))
+            for i, n in zip(inputs, names)]
     if shard_spec is not None:
         jobs = shard(jobs, *shard_spec)
     skipped, todo = [], []

@@ -19,7 +19,7 @@ if TYPE_CHECKING:
     from condtrack_cli.config import Config
 
 #: Options of ``track`` that only a batch (--out-dir) takes.
-BATCH_ONLY = ("skip_existing", "shard", "scheduler", "scheduler_file")
+BATCH_ONLY = ("skip_existing", "shard", "scheduler", "scheduler_file", "jobs")
 
 
 def batch_options(command):
@@ -50,7 +50,7 @@ def requested_threads(threads: int | None) -> int | None:
 
 def single_run_threads(threads: int | None, batch_values: dict) -> None:
     """Size the thread pools of a single run; refuse batch-only options without --out-dir."""
-    given = [f"--{name.replace('_', '-')}" for name in BATCH_ONLY if batch_values.get(name)]
+    given = [f"--{name.replace('_', '-')}" for name in BATCH_ONLY if batch_values.get(name) not in (None, False)]
     if given:
         raise CondtrackError(f"{', '.join(given)}: a batch option (give --out-dir)")
     use_threads(requested_threads(threads))
@@ -100,16 +100,19 @@ def sigterm_exits():
 
 
 def run_batch(
-    inputs: list[str], config: Config, queries_path: str | None, out_dir: str, batch_format: str, seed: int, jobs: int,
-    quiet: bool, skip_existing: bool, shard: str | None, scheduler: str | None, scheduler_file: str | None,
+    inputs: list[str], config: Config, queries_path: str | None, out_dir: str, batch_format: str, seed: int,
+    jobs: int | None, quiet: bool, skip_existing: bool, shard: str | None, scheduler: str | None, scheduler_file: str | None,
     threads: int | None,
 ) -> None:
-    """Plan, run and report a batch; exit 1 when an input failed."""
+    """Plan, run and report a batch; exit 1 when an input failed. ``jobs`` None: -j not given (one job at a time)."""
     from condtrack_cli.batch import append_record, parse_shard, plan_batch, run_dask, run_local
 
     if scheduler and scheduler_file:
         raise CondtrackError("--scheduler and --scheduler-file: give one")
     on_dask = bool(scheduler or scheduler_file)
+    if on_dask and jobs is not None:
+        raise CondtrackError("-j/--jobs: not with --scheduler (the Dask workers run the inputs: dask worker --nworkers)")
+    jobs = jobs or 1
     requested = requested_threads(threads)
     if on_dask:
         per_job, warning = requested or 1, None  # a Dask worker runs several tasks at once: one thread each by default
@@ -141,8 +144,9 @@ def run_batch(
     if failed:
         if quiet:  # -q silences progress and the table, not the errors
             for r in ordered:
-                if r.status == "failed":
-                    click.echo(f"Error: {r.input}: {r.error}", err=True)
+                if r.status == "failed":  # named once: most messages start with the input already
+                    named = r.error.startswith(f"{r.input}:")
+                    click.echo(f"Error: {r.error}" if named else f"Error: {r.input}: {r.error}", err=True)
         click.echo(f"Error: {failed} of {len(ordered)} inputs failed (see {Path(out_dir) / 'manifest.jsonl'})", err=True)
         sys.exit(1)
 

@@ -15,6 +15,8 @@ two equal.
 from __future__ import annotations
 
 import copy
+import logging
+from collections.abc import Hashable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, Mapping
@@ -23,7 +25,7 @@ import yaml
 from pydantic import BaseModel, Field, ValidationError
 
 from condtrack_cli import registry
-from condtrack_cli.errors import CondtrackError, read_error
+from condtrack_cli.errors import CondtrackError, plain, read_error
 from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.settings import StageSettings
 
@@ -117,7 +119,7 @@ def valid_methods() -> list[str]:
 def check_method(method: str) -> None:
     """CondtrackError naming the key ``filter.method`` and the valid methods when ``method`` is not registered."""
     if method not in valid_methods():
-        raise CondtrackError(f"config key 'filter.method': unknown method {method!r}; valid: {', '.join(valid_methods())}")
+        raise CondtrackError(f"config key 'filter.method': unknown method {plain(method)}; valid: {', '.join(valid_methods())}")
 
 
 def _format_validation_error(prefix: str, error: ValidationError, model: type[BaseModel]) -> str:
@@ -129,12 +131,12 @@ def _format_validation_error(prefix: str, error: ValidationError, model: type[Ba
     if first["type"] == "value_error" and not first["loc"]:  # a rule across keys: the message names them
         return f"config key '{key}': {first['ctx']['error']}"
     got = first.get("input")
-    return f"config key '{key}': {first['msg']} (got {got!r})"
+    return f"config key '{key}': {first['msg']} (got {plain(got)})"
 
 
 def _validate(prefix: str, model: type[StageSettings], params: Any) -> StageSettings:
     if not isinstance(params, dict):
-        raise CondtrackError(f"config key '{prefix}': expected a mapping of keys to values, got {params!r}")
+        raise CondtrackError(f"config key '{prefix}': expected a mapping of keys to values, got {plain(params)}")
     try:
         return model.model_validate(params)
     except ValidationError as error:
@@ -144,7 +146,7 @@ def _validate(prefix: str, model: type[StageSettings], params: Any) -> StageSett
 def _named_section(kind: str, raw: Any) -> StageConfig:
     raw = dict(raw or {}) if isinstance(raw, dict) or raw is None else raw
     if not isinstance(raw, dict):
-        raise CondtrackError(f"config key '{kind}': expected a mapping, got {raw!r}")
+        raise CondtrackError(f"config key '{kind}': expected a mapping, got {plain(raw)}")
     name = raw.pop("name", DEFAULT_NAMES[kind])
     try:
         spec = registry.get(kind, name)
@@ -162,13 +164,13 @@ def resolve(raw: Mapping[str, Any]) -> Config:
     stages = {kind: _named_section(kind, raw.get(kind)) for kind in NAMED_SECTIONS}
     filter_raw = raw.get("filter") or {}
     if not isinstance(filter_raw, dict):
-        raise CondtrackError(f"config key 'filter': expected a mapping, got {filter_raw!r}")
+        raise CondtrackError(f"config key 'filter': expected a mapping, got {plain(filter_raw)}")
     filter_raw = dict(filter_raw)
     method = filter_raw.pop("method", DEFAULT_METHOD)
     check_method(method)
     smooth = filter_raw.pop("smooth", False)
     if not isinstance(smooth, bool):
-        raise CondtrackError(f"config key 'filter.smooth': expected true or false, got {smooth!r}")
+        raise CondtrackError(f"config key 'filter.smooth': expected true or false, got {plain(smooth)}")
     filters = {}
     for name in registry.names("filter"):
         filters[name] = _validate(f"filter.{name}", registry.get("filter", name).settings, filter_raw.pop(name, None) or {})
@@ -181,6 +183,35 @@ def resolve(raw: Mapping[str, Any]) -> Config:
     return Config(stages=stages, method=method, filters=filters, output=output, smooth=smooth)
 
 
+class DuplicateKey(yaml.constructor.ConstructorError):
+    """A mapping that gives one key twice (PyYAML would keep the last silently)."""
+
+    def __init__(self, key: Any, line: int):
+        super().__init__(problem=f"key {key!r} given twice")
+        self.key, self.line = key, line
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping with :class:`DuplicateKey`."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
+        seen = set()
+        for key_node, _ in node.value:
+            if key_node.tag == "tag:yaml.org,2002:merge":
+                continue  # '<<' merges another mapping, whose keys the explicit ones may override
+            key = self.construct_object(key_node, deep=deep)
+            if isinstance(key, Hashable):
+                if key in seen:
+                    raise DuplicateKey(key, key_node.start_mark.line + 1)
+                seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def parse_yaml(text: str) -> Any:
+    """``text`` parsed as YAML (safe types only); a key given twice raises :class:`DuplicateKey`."""
+    return yaml.load(text, Loader=_UniqueKeyLoader)
+
+
 def parse_override(text: str) -> tuple[list[str], Any]:
     """``'motion.levels=3'`` -> (['motion', 'levels'], 3); the value is read as YAML."""
     key, sep, value = text.partition("=")
@@ -188,7 +219,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if not sep or not all(path):
         raise CondtrackError(f"--set {text!r}: expected section.key=value")
     try:
-        parsed = yaml.safe_load(value)
+        parsed = parse_yaml(value)
+    except DuplicateKey as error:
+        raise CondtrackError(f"--set {text!r}: key {error.key!r} given twice") from None
     except yaml.YAMLError:
         raise CondtrackError(f"--set {text!r}: the value is not valid YAML") from None
     return path, parsed
@@ -214,7 +247,9 @@ def read_yaml(path: str | Path) -> dict:
     except OSError as error:
         raise read_error(error, f"cannot read config file {str(path)!r}: {error.strerror or error}") from None
     try:
-        raw = yaml.safe_load(text)
+        raw = parse_yaml(text)
+    except DuplicateKey as error:
+        raise CondtrackError(f"config file {str(path)!r}, line {error.line}: key {error.key!r} given twice") from None
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark else ""
@@ -226,19 +261,42 @@ def read_yaml(path: str | Path) -> dict:
     return raw
 
 
+def filters_used_by(method: str) -> tuple[str, ...]:
+    """The ``filter.<name>`` sections that ``method`` reads: its own and its settings' ``filter_sections``."""
+    return (method, *registry.get("filter", method).settings.filter_sections)
+
+
+def _warn_unused_override(config: Config, path: list[str], text: str) -> None:
+    """Warn (logger ``condtrack``) when ``--set`` ``text`` sets a ``filter.<name>`` section that the method does not read."""
+    if len(path) < 3 or path[0] != "filter" or path[1] not in valid_methods() or path[1] in filters_used_by(config.method):
+        return
+    users = [name for name in valid_methods() if path[1] in filters_used_by(name)]
+    logging.getLogger("condtrack").warning(
+        "--set %s has no effect: method '%s' does not use filter.%s (-m %s would)", text, config.method, path[1],
+        " or -m ".join(users),
+    )
+
+
 def load_config(
     path: str | Path | Mapping[str, Any] | None = None, overrides: list[str] = (), method: str | None = None,
 ) -> Config:
-    """The validated config: defaults, then the file (or a nested mapping), then ``--set`` overrides, then ``-m``."""
+    """The validated config: defaults, then the file (or a nested mapping), then ``--set`` overrides, then ``-m``.
+
+    An override of a filter section that the chosen method does not use gets a warning.
+    """
     if path is not None and not isinstance(path, (str, Path, Mapping)):
         raise CondtrackError(f"config: expected a YAML path or a nested mapping, got {type(path).__name__}")
     raw = read_yaml(path) if isinstance(path, (str, Path)) else dict(path or {})
     raw = copy.deepcopy(raw)
-    for text in overrides:
-        _apply_override(raw, *parse_override(text))
+    parsed = [parse_override(text) for text in overrides]
+    for override in parsed:
+        _apply_override(raw, *override)
     if method is not None:
         _apply_override(raw, ["filter", "method"], method)
-    return resolve(raw)
+    config = resolve(raw)
+    for text, (key_path, _) in zip(overrides, parsed):
+        _warn_unused_override(config, key_path, text)
+    return config
 
 
 def _yaml_scalar(value: Any) -> str:

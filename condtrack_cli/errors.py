@@ -1,5 +1,7 @@
 """The exceptions that reach the user as a one-line ``Error: ...`` and an exit code (README, "Exit codes")."""
 
+import numpy as np
+
 
 class CondtrackError(Exception):
     """Bad input or configuration: the message names the file, key or frame.
@@ -21,3 +23,19 @@ class MissingInput(CondtrackError):
 def read_error(error: OSError | Exception, message: str) -> CondtrackError:
     """``message`` as :class:`MissingInput` when ``error`` says the file does not exist, else as CondtrackError."""
     return (MissingInput if isinstance(error, FileNotFoundError) else CondtrackError)(message)
+
+
+def plain(value: object) -> str:
+    """``value`` for a message, as Python shows it: numpy scalars and arrays (also inside lists, tuples and dicts) as
+    the plain values they hold, ``'abc'`` and ``3`` rather than ``np.str_('abc')`` and ``np.int64(3)``."""
+    return repr(_python(value))
+
+
+def _python(value: object) -> object:
+    if isinstance(value, (np.generic, np.ndarray)):
+        return value.tolist()
+    if isinstance(value, (list, tuple)):
+        return type(value)(_python(item) for item in value)
+    if isinstance(value, dict):
+        return {_python(key): _python(item) for key, item in value.items()}
+    return value

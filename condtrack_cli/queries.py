@@ -33,7 +33,9 @@ def _integer(cell: str) -> int:
 def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
     """Queries from ``path``, checked against the sequence; ordered by point_id.
 
-    Without a ``point_id`` column the points are numbered 0.. in file order. A
+    The header holds ``frame``, ``x``, ``y`` and optionally ``point_id``, in any
+    order, each once; any other column is refused (a misspelt ``point_id`` would
+    renumber the points). Without a ``point_id`` column the points are numbered 0.. in file order. A
     point must lie inside the frame ([-0.5, W-0.5] x [-0.5, H-0.5], the pixel
     convention of docs/schema.md) and its frame in [0, n_frames).
     """
@@ -46,6 +48,11 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
     if not rows:
         raise CondtrackError(f"{path}: empty queries file (expected a header frame,x,y[,point_id])")
     header = [name.strip() for name in rows[0]]
+    for index, name in enumerate(header):
+        if name not in (*REQUIRED_COLUMNS, "point_id"):
+            raise CondtrackError(f"{path}: unknown column '{name}' (the header must have frame,x,y[,point_id])")
+        if name in header[:index]:
+            raise CondtrackError(f"{path}: column '{name}' appears twice in the header")
     for name in REQUIRED_COLUMNS:
         if name not in header:
             raise CondtrackError(f"{path}: missing column '{name}' (the header must have frame,x,y[,point_id])")

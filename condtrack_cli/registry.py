@@ -17,6 +17,8 @@ from typing import TYPE_CHECKING, Callable
 if TYPE_CHECKING:  # the settings models' base; pydantic itself loads with the first stage
     from pydantic import BaseModel
 
+from condtrack_cli.errors import plain
+
 #: The kinds of stage, in data-flow order.
 KINDS = ("frames", "detect", "motion", "measure", "filter", "output")
 
@@ -94,7 +96,7 @@ def get(kind: str, name: str) -> StageSpec:
         return _STAGES[kind][name]
     except KeyError:
         valid = ", ".join(names(kind)) or "(none)"
-        raise ValueError(f"unknown {kind} stage {name!r}; valid: {valid}") from None
+        raise ValueError(f"unknown {kind} stage {plain(name)}; valid: {valid}") from None
 
 
 #: Methods with fixed codes in track files (docs/schema.md): code i is ``BUILTIN_METHOD_CODES[i]``.
@@ -117,7 +119,7 @@ def method_code(name: str) -> int:
     """The code of method ``name`` in track files; ValueError naming the valid methods otherwise."""
     codes = method_codes()
     if name not in codes:
-        raise ValueError(f"unknown method {name!r}; valid: {', '.join(codes)}")
+        raise ValueError(f"unknown method {plain(name)}; valid: {', '.join(codes)}")
     return codes.index(name)
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 from condtrack_cli.api import track_sequence
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
+from condtrack_cli.io.atomic import through_links
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.write import csv_text, write_tracks
 
@@ -42,7 +43,7 @@ class RunSummary:
 def check_output_path(path: Path) -> None:
     """Refuse an output path before any work: unknown extension, missing or read-only folder."""
     track_format(path, "output")
-    folder = path.parent
+    folder = through_links(path).parent
     if not folder.is_dir():
         raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")
     if not os.access(folder, os.W_OK | os.X_OK):

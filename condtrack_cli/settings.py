@@ -12,12 +12,15 @@ from pydantic import BaseModel, ConfigDict
 
 
 class StageSettings(BaseModel):
-    """Base of every stage's settings: frozen, strict types, unknown keys refused.
+    """Base of every stage's settings: frozen, strict types, unknown keys and non-finite numbers refused.
 
     ``frame_windows`` names the fields that are window sides in pixels and must
     fit in the frame; :meth:`condtrack_cli.config.Config.check_fits_frame` checks
-    them once the frame size is known.
+    them once the frame size is known. ``filter_sections`` (a filter's settings
+    only) names the other filters whose ``filter.<name>`` settings it reads, as
+    the router ``auto`` reads ``clf`` and ``cnlf``.
     """
 
-    model_config = ConfigDict(extra="forbid", frozen=True, strict=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
     frame_windows: ClassVar[tuple[str, ...]] = ()
+    filter_sections: ClassVar[tuple[str, ...]] = ()

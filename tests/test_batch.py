@@ -258,3 +258,53 @@ def test_dask_run_writes_the_same_bytes_as_the_local_run(clips, tmp_path):
     assert "[4/4]" in result.stderr
     assert outputs(local) == outputs(remote) and len(outputs(local)) == 4
     assert sorted(r["input"] for r in manifest(remote)) == sorted(clips)
+
+
+def test_skip_existing_redoes_another_input_with_the_same_output_name(tmp_path):
+    """Issue 28.1: the resume check compares the input's identity (path, frames' names, sizes, mtimes), not the name."""
+    import h5py
+
+    first, second = make_clips(tmp_path / "a", 1)[0], make_clips(tmp_path / "b", 2)[1]
+    out_dir = tmp_path / "tracks"
+    args = ["-m", "stk", "--out-dir", str(out_dir), "--skip-existing", "-q"]
+    assert run_cli("track", first, *args).returncode == 0
+    assert run_cli("track", first, *args).returncode == 0  # the same input: skipped
+    assert run_cli("track", second, *args).returncode == 0  # clip001/frames, also written as frames.h5
+    assert [(r["input"], r["status"]) for r in manifest(out_dir)] == [
+        (first, "ok"), (first, "skipped"), (second, "ok")]
+    with h5py.File(out_dir / "frames.h5") as f:
+        assert f.attrs["input"] == second
+    frame = Path(second) / "00001.png"
+    frame.write_bytes((Path(second) / "00002.png").read_bytes())  # a frame changed: its size or mtime differs
+    assert run_cli("track", second, *args).returncode == 0
+    assert manifest(out_dir)[-1]["status"] == "ok"
+
+
+def test_batch_only_options_are_refused_where_they_would_be_ignored(clips, tmp_path):
+    """Issue 28.9: -j with one input and no --out-dir, and -j with --scheduler, did nothing and said nothing."""
+    result = run_cli("track", clips[0], "-m", "stk", "-j", "2", "-o", str(tmp_path / "out.csv"))
+    assert result.returncode == 1 and result.stderr == "Error: --jobs: a batch option (give --out-dir)\n"
+    result = run_cli("track", *clips[:2], "-m", "stk", "--out-dir", str(tmp_path / "d"), "-j", "2",
+                     "--scheduler", "tcp://127.0.0.1:9")
+    assert result.returncode == 1 and result.stderr.startswith("Error: -j/--jobs: not with --scheduler")
+    assert not (tmp_path / "out.csv").exists() and not (tmp_path / "d").exists()
+
+
+def test_from_list_paths_are_relative_to_the_list_and_names_do_not_depend_on_the_working_directory(tmp_path):
+    """Issue 28.21: a list's relative paths are read from the list's folder, so the batch (inputs and output names)
+    is the same from any working directory."""
+    make_clips(tmp_path / "data", 2)
+    listing = tmp_path / "lists" / "clips.txt"
+    listing.parent.mkdir()
+    listing.write_text("# two clips\n../data/clip000/frames\n\n../data/clip001/frames\n")
+    names = []
+    for cwd in (tmp_path, tmp_path / "lists"):
+        out_dir = tmp_path / f"out_{cwd.name}"
+        result = subprocess.run(
+            [sys.executable, "-c", "from condtrack_cli.cli import main; main()", "track", "--from-list",
+             os.path.relpath(listing, cwd), "-m", "stk", "--out-dir", str(out_dir), "-q"],
+            capture_output=True, text=True, timeout=300, cwd=cwd)
+        assert result.returncode == 0, result.stderr
+        assert [r["status"] for r in manifest(out_dir)] == ["ok", "ok"]
+        names.append(sorted(p.name for p in out_dir.glob("*.h5")))
+    assert names == [["clip000_frames.h5", "clip001_frames.h5"]] * 2

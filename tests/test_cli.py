@@ -89,6 +89,10 @@ def test_queries_are_tracked_forward_and_backward_from_their_frame(shifted_folde
         ("frame,x,y\n0,abc,3\n", "row 2, column 'x': 'abc' is not a number"),
         ("frame,x,y\n0,1000,3\n", "row 2: point (1000, 3) is outside"),
         ("frame,x,y\n99,10,3\n", "row 2: frame 99 is outside the sequence"),
+        # issue 28.3: a misspelt point_id would renumber the points; a repeated column is ambiguous
+        ("frame,x,y,pointid\n0,10,3,5\n", "q.csv: unknown column 'pointid'"),
+        ("frame,x,y,x\n0,10,3,12\n", "q.csv: column 'x' appears twice in the header"),
+        ("point_id,frame,x,y,point_id\n1,0,10,3,2\n", "column 'point_id' appears twice"),
     ],
 )
 def test_bad_queries_are_refused_without_output(shifted_folder, tmp_path, content, message):
@@ -160,3 +164,51 @@ def test_stk_accuracy_on_the_samples(tmp_path, sample, floor):
     assert run_cli("track", str(folder), "-p", str(folder / "queries.csv"), "-m", "stk", "-o", str(out), "-q").returncode == 0
     result, _ = score_tracks(read_tracks(out)[0], load_gt_csv(folder / "tracks.csv"))
     assert result["delta_avg"] >= floor
+
+
+def _track_csv(path, rows):
+    """A condtrack track CSV with ``rows`` of (point_id, frame, x, y), covariances I, visible, clf."""
+    path.write_text(",".join(CSV_COLUMNS) + "\n" + "".join(f"{p},{f},{x},{y},1,0,1,1,clf\n" for p, f, x, y in rows))
+    return path
+
+
+@pytest.mark.parametrize("command", ["eval", "render", "info", "compare"])
+def test_a_track_csv_with_a_repeated_point_and_frame_is_refused(shifted_folder, tmp_path, command):
+    """Issue 28.4: every command that reads a track CSV refuses a second row for one (point_id, frame)."""
+    folder, _ = shifted_folder
+    rows = [(p, f, 100.0 + f, 50.0 + 10 * p) for p in (0, 1) for f in range(6)]
+    good = _track_csv(tmp_path / "good.csv", rows)
+    bad = _track_csv(tmp_path / "bad.csv", rows[:9] + [(1, 1, 140.0, 60.0)] + rows[9:])
+    truth = tmp_path / "gt.csv"
+    truth.write_text("point_id,frame,x,y,visible\n" + "".join(f"{p},{f},{x},{y},1\n" for p, f, x, y in rows))
+    args = {"eval": [str(bad), str(truth)], "render": [str(bad), str(folder), "-o", str(tmp_path / "out.mp4")],
+            "info": [str(bad)], "compare": [str(bad), str(good)]}[command]
+    result = run_cli(command, *args)
+    assert result.returncode == (2 if command == "compare" else 1)  # compare: 1 means "differ"
+    assert result.stderr == f"Error: {bad}: line 11 (point_id 1, frame 1): a second row for the same point_id and frame\n"
+    assert not (tmp_path / "out.mp4").exists()
+    assert run_cli(command, *[str(good) if a == str(bad) else a for a in args]).returncode == 0
+
+
+def test_output_on_an_input_is_refused_and_a_symlinked_output_is_written_through(shifted_folder, tmp_path):
+    """Issue 28.5: -o naming the queries file (or a link to it) is refused; -o on a link replaces its target."""
+    folder, _ = shifted_folder
+    queries = tmp_path / "q.csv"
+    queries.write_text("frame,x,y\n0,120,100\n")
+    before = queries.read_bytes()
+    alias = tmp_path / "alias.csv"
+    alias.symlink_to(queries)
+    for out in (queries, alias):
+        result = run_cli("track", str(folder), "-p", str(queries), "-m", "stk", "-o", str(out))
+        assert result.returncode == 1 and result.stderr == (
+            f"Error: -o {out}: the same file as the input -p {queries}; writing it would destroy the input\n")
+        assert queries.read_bytes() == before
+    target = tmp_path / "kept" / "tracks.csv"
+    target.parent.mkdir()
+    target.write_text("old\n")
+    link = tmp_path / "latest.csv"
+    link.symlink_to(target)
+    assert run_cli("track", str(folder), "-p", str(queries), "-m", "stk", "-o", str(link), "-q").returncode == 0
+    assert link.is_symlink() and link.readlink() == target
+    assert target.read_text().splitlines()[0] == ",".join(CSV_COLUMNS)
+    assert not [p for p in tmp_path.rglob(".*.part")]

@@ -301,3 +301,19 @@ def test_hdf5_is_byte_stable_and_carries_no_timestamp(tmp_path, compression):
     assert data == second.read_bytes()
     stamps = [struct.pack("<I", t) for t in range(before - 2, after + 3)]  # HDF5 stores seconds as uint32
     assert not any(stamp in data for stamp in stamps)
+
+
+def test_the_readme_compare_example_is_what_compare_prints(tmp_path):
+    """Issue 28.21: the README's golden-file example (a run with --set measure.search_max=8) shows today's output."""
+    from conftest import REPO, SAMPLES
+
+    text = (REPO / "README.md").read_text(encoding="utf-8")
+    block = text[text.index("What a failure looks like"):]
+    shown = block[block.index("```\n") + 4:block.index("...\n```")].splitlines()
+    sample = SAMPLES / "occlusion"
+    for name, extra in (("golden.csv", []), ("today.csv", ["--set", "measure.search_max=8"])):
+        assert run_cli("track", sample, "-p", sample / "queries.csv", "-o", tmp_path / name, "-q", *extra).returncode == 0
+    result = subprocess.run([sys.executable, "-c", "from condtrack_cli.cli import main; main()", "compare", "golden.csv",
+                             "today.csv"], capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    assert result.returncode == 1
+    assert result.stdout.splitlines()[:len(shown)] == shown

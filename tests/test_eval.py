@@ -573,3 +573,42 @@ def test_bench_meter_reads_the_command_s_own_peak_memory():
     assert filled >= 200, filled
     _, _, code, message = run_process([sys.executable, "-c", "import sys; sys.exit('Error: no frame')"])
     assert code == 1 and message == "Error: no frame"
+
+
+def test_check_queries_tolerance_and_frames_without_visible_truth():
+    """Issue 28.2: a query within 1 px of the truth on its frame passes, 1.2 px away is refused; frames where the
+    truth is not visible (or past its end) are not checked."""
+    from condtrack_cli.evaluate.groundtruth import check_queries
+
+    truth = GroundTruth(np.array([0, 1]), gt_xy(), np.array([[1, 1, 1, 1], [0, 1, 1, 1]], bool), np.ones((2, 4), bool))
+    near = gt_xy()
+    near[0, 0] += [0.6, 0.6]  # 0.85 px
+    near[1, 0] += [50, 0]  # point 1's query frame 0: truth occluded there
+    check_queries(make_tracks([0, 1], near, np.ones((2, 4), bool)), truth)
+    late = np.full((1, 6, 2), NAN)
+    late[0, 5] = [0, 0]  # query frame 5: beyond the truth's 4 frames
+    check_queries(make_tracks([0], late, np.ones((1, 6), bool)), truth)
+    far = gt_xy()
+    far[1, 0] += [50, 0]
+    far[1, 1] += [1.2, 0]
+    far[1, 0] = NAN  # point 1 now queried on frame 1, where its truth is visible
+    with pytest.raises(CondtrackError, match=r"point_id 1: the prediction's query on frame 1 .* 1.20 px"):
+        check_queries(make_tracks([0, 1], far, np.ones((2, 4), bool)), truth)
+
+
+@pytest.mark.parametrize("suffix", [".h5", ".csv"])
+def test_eval_refuses_detected_points_scored_by_coinciding_ids(tmp_path, suffix):
+    """Issue 28.2: points detected without -p are numbered 0.. like the truth's; eval refuses to score them."""
+    from conftest import SAMPLES
+    from test_cli import run_cli
+
+    sample = SAMPLES / "ring"
+    detected, queried = tmp_path / f"detected{suffix}", tmp_path / f"queried{suffix}"
+    assert run_cli("track", str(sample), "-m", "stk", "-o", str(detected), "-q").returncode == 0
+    assert run_cli("track", str(sample), "-p", str(sample / "queries.csv"), "-m", "stk", "-o", str(queried),
+                   "-q").returncode == 0
+    result = run_cli("eval", str(detected), str(sample / "tracks.csv"), "--json")
+    assert result.returncode == 1 and result.stdout == ""
+    assert result.stderr.startswith("Error: point_id 2: the prediction's query on frame 0") and result.stderr.count("\n") == 1
+    result = run_cli("eval", str(queried), str(sample / "tracks.csv"), "--json")
+    assert result.returncode == 0 and json.loads(result.stdout)["delta_avg"] > 0.5

@@ -65,6 +65,13 @@ def test_input_failures(tmp_path):
         ("", ["--set", "filter.stk.levels=0"], "'filter.stk.levels'"),
         ("", ["--set", "filter.stk.win_size=500"], "does not fit in the 320x240 frame"),
         ("", ["-m", "nope"], "'filter.method': unknown method 'nope'"),
+        # issue 28.6: PyYAML keeps the last of two equal keys silently
+        ("motion:\n  levels: 3\n  levels: 2\n", [], "c.yaml', line 3: key 'levels' given twice"),
+        ("filter: {stk: {win_size: 31, win_size: 15}}\n", [], "line 1: key 'win_size' given twice"),
+        ("", ["--set", "motion={levels: 3, levels: 2}"], "key 'levels' given twice"),
+        # issue 28.8: a non-finite number is no setting
+        ("measure: {gamma: .inf}\n", ["-m", "stk"], "'measure.gamma': Input should be a finite number (got inf)"),
+        ("", ["-m", "stk", "--set", "filter.stk.epsilon=.nan"], "'filter.stk.epsilon': Input should be a finite number"),
     ],
 )
 def test_config_failures(tmp_path, yaml_text, extra, message):
@@ -211,3 +218,46 @@ def test_a_missing_input_file_exits_2_in_every_command(tmp_path, args):
     args = [a.format(missing=missing, tmp=tmp_path) for a in args]
     _one_error_line(run_cli(*args), 2, "missing.file")
     assert not list(tmp_path.iterdir())
+
+
+def test_a_set_on_a_filter_the_method_does_not_use_is_warned(tmp_path):
+    """Issue 28.7: --set filter.stk.* under -m auto changes nothing; say so and name the method that would use it."""
+    out = tmp_path / "out.csv"
+    result = run_cli("track", str(SAMPLE), "-m", "mdr", "--set", "filter.stk.win_size=31", "--set", "filter.cnlf.particles=50",
+                     "--set", "filter.mdr.initial_std=1", "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    warnings = [line for line in result.stderr.splitlines() if "has no effect" in line]
+    assert warnings == [
+        "warning: --set filter.stk.win_size=31 has no effect: method 'mdr' does not use filter.stk (-m stk would)",
+        "warning: --set filter.cnlf.particles=50 has no effect: method 'mdr' does not use filter.cnlf "
+        "(-m auto or -m cnlf would)",
+    ]
+    result = run_cli("track", str(SAMPLE), "-m", "stk", "--set", "filter.stk.win_size=31", "-o", str(out))
+    assert result.returncode == 0 and "has no effect" not in result.stderr
+
+
+def test_messages_show_values_plainly_and_name_an_input_once(tmp_path):
+    """Issue 28.20: no ``np.str_('abc')`` in a message, and a quiet batch does not print "Error: empty: empty: ..."."""
+    tracks = tmp_path / "t.csv"
+    tracks.write_text("point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method\n0,0,1.0,2.0,1,0,1,1,abc\n")
+    result = run_cli("info", str(tracks))
+    assert result.returncode == 1 and result.stderr == (
+        f"Error: {tracks}: unknown method 'abc'; valid: stk, mdr, clf, cnlf\n")
+    h5 = tmp_path / "t.h5"
+    with h5py.File(h5, "w") as f:
+        f.attrs["schema_version"] = np.int64(3)
+    result = run_cli("info", str(h5))
+    assert result.stderr == f"Error: {h5}: schema_version 3 is not supported (this condtrack reads '1.0')\n"
+    empty = tmp_path / "empty"
+    empty.write_bytes(b"")
+    result = run_cli("track", str(empty), str(SAMPLE), "-m", "stk", "--out-dir", str(tmp_path / "out"), "-q")
+    errors = [line for line in result.stderr.splitlines() if line.startswith("Error: ")]
+    assert result.returncode == 1 and errors[0] == f"Error: {empty}: not a readable video (OpenCV could not open it)"
+    from condtrack_cli.config import load_config
+    from condtrack_cli.errors import CondtrackError
+
+    with pytest.raises(CondtrackError, match=r"^config key 'measure.gamma': Input should be greater than 0 \(got -1.0\)$"):
+        load_config({"measure": {"gamma": np.float64(-1)}})
+    tracks.write_text("point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method\n0,0,1.0,2.0,1,0,1,1,stk\n0,1,abc,2,1,0,1,1,stk\n")
+    result = run_cli("info", str(tracks))
+    assert result.stderr == f"Error: {tracks}: line 3, column 'x': 'abc' is not a number\n"

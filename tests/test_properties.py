@@ -1,8 +1,9 @@
-"""Property: any queries CSV and config, valid or not, either tracks or fails cleanly (issue 16).
+"""Property: any queries CSV, config or track CSV, valid or not, either works or fails cleanly (issues 16, 28).
 
 Clean failure: exactly one ``Error:`` line on stderr, exit code 1 or 2, no
-output file (nor temporary). The command line runs in process (``main``) on a
-4-frame 64 x 48 clip, with a bounded, derandomised set of examples.
+output file (nor temporary), no traceback (an exception out of ``main`` fails
+the test). The command line runs in process (``main``) on a 4-frame 64 x 48
+clip, with a bounded, derandomised set of examples.
 """
 
 from __future__ import annotations
@@ -15,9 +16,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
 from hypothesis import HealthCheck, given, settings, strategies as st
 
 from condtrack_cli.cli import main
+from condtrack_cli.io.write import CSV_COLUMNS
 
 WIDTH, HEIGHT, N_FRAMES = 64, 48, 4
 
@@ -25,8 +28,10 @@ numbers = st.one_of(
     st.integers(-3, 70).map(str), st.floats(allow_nan=True, allow_infinity=True).map(repr),
     st.sampled_from(["", " 7 ", "1e20", "9223372036854775808", "2.5", "abc", "0x10", "-0"]),
 )
-columns = st.permutations(["frame", "x", "y", "point_id"]).flatmap(
-    lambda names: st.integers(2, 4).map(lambda n: list(names[:n]))
+columns = st.one_of(
+    st.permutations(["frame", "x", "y", "point_id"]).flatmap(lambda names: st.integers(2, 4).map(lambda n: list(names[:n]))),
+    # issue 28.3: a misspelt or repeated column
+    st.lists(st.sampled_from(["frame", "x", "y", "point_id", "pointid", "Frame", ""]), min_size=3, max_size=5),
 )
 
 
@@ -90,3 +95,90 @@ def test_every_run_tracks_or_fails_cleanly(clip, capsys, text, sets, method, suf
             lines = stderr.strip().splitlines()
             assert len(lines) == 1 and lines[0].startswith("Error: "), stderr
             assert sorted(p.name for p in Path(out_dir).iterdir()) == ["q.csv"]
+
+
+
+def _assert_clean_failure(code: int, stderr: str) -> None:
+    assert code in (1, 2), stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: "), stderr
+
+
+# ---------------------------------------------------------------- configs (issue 28.6, 28.8)
+
+config_names = st.sampled_from(["levels", "gamma", "name", "win_size", "block", "max_points", "template",
+                                "hdf5_compression", "non_image_files", "stk", "smooth", "method"])
+config_sections = st.sampled_from(["frames", "detect", "motion", "measure", "filter", "output", "nope"])
+
+
+@st.composite
+def config_yaml(draw) -> str:
+    """A YAML config of known and unknown sections and keys; sometimes one line repeated (a key given twice)."""
+    raw = draw(st.dictionaries(config_sections, st.one_of(
+        st.dictionaries(config_names, st.one_of(config_values, st.dictionaries(config_names, config_values, max_size=2)),
+                        max_size=3),
+        config_values), max_size=3))
+    lines = yaml.safe_dump(raw, sort_keys=False).splitlines()
+    if lines and draw(st.booleans()):
+        index = draw(st.integers(0, len(lines) - 1))
+        lines.insert(index, lines[index])
+    return "\n".join(lines) + "\n"
+
+
+@settings(max_examples=30, derandomize=True, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(text=config_yaml())
+def test_every_config_file_tracks_or_fails_cleanly(clip, capsys, text):
+    with tempfile.TemporaryDirectory() as out_dir:
+        config, out = Path(out_dir) / "c.yaml", Path(out_dir) / "out.csv"
+        config.write_text(text, encoding="utf-8")
+        code, stderr = _run(["track", str(clip), "-c", str(config), "-m", "stk", "-o", str(out), "-q"], capsys)
+        if code == 0:
+            assert out.is_file() and stderr == ""
+        else:
+            _assert_clean_failure(code, stderr)
+            assert sorted(p.name for p in Path(out_dir).iterdir()) == ["c.yaml"]
+
+
+# ---------------------------------------------------------------- track CSVs (issue 28.4, 28.20)
+
+GROUND_TRUTH = "point_id,frame,x,y,visible\n" + "".join(f"{p},{f},{10 + f}.5,{20 + p},1\n" for p in (0, 1) for f in range(4))
+cells = st.one_of(numbers, st.sampled_from(["clf", "stk", "abc"]))
+
+
+@st.composite
+def track_csv(draw) -> str:
+    """A track CSV: mostly the schema's header and well-typed rows on a few points and frames, some cells replaced
+    by anything, some rows repeated or cut short."""
+    header = draw(st.one_of(st.just(list(CSV_COLUMNS)), st.permutations(CSV_COLUMNS).map(list)))
+    well_typed = st.tuples(
+        st.one_of(st.integers(-1, 2).map(str), st.just("9223372036854775808")), st.integers(-1, 5).map(str),
+        st.floats(0, 70).map(repr), st.floats(0, 50).map(repr),
+        st.sampled_from(["1.0", "nan", "inf"]), st.just("0"), st.sampled_from(["1.0", "nan", "inf"]),
+        st.sampled_from(["0", "1", "2"]), st.sampled_from(["clf", "stk", "cnlf", "abc"]),
+    ).map(list)
+    rows = draw(st.lists(well_typed, max_size=8))
+    for row in rows:
+        if draw(st.integers(0, 3)) == 0:
+            row[draw(st.integers(0, len(row) - 1))] = draw(cells)
+        if draw(st.integers(0, 7)) == 0:
+            del row[draw(st.integers(0, len(row) - 1)):]
+    if rows and draw(st.booleans()):
+        rows.append(list(rows[draw(st.integers(0, len(rows) - 1))]))
+    return ",".join(header) + "\n" + "".join(",".join(row) + "\n" for row in rows)
+
+
+@settings(max_examples=40, derandomize=True, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@given(text=track_csv(), command=st.sampled_from(["info", "eval"]))
+def test_every_track_csv_is_read_or_refused_cleanly(capsys, text, command):
+    with tempfile.TemporaryDirectory() as folder:
+        tracks, truth = Path(folder) / "t.csv", Path(folder) / "gt.csv"
+        tracks.write_text(text, encoding="ascii")
+        truth.write_text(GROUND_TRUTH, encoding="ascii")
+        code, stderr = _run([command, str(tracks), *([str(truth), "--json"] if command == "eval" else [])], capsys)
+        if code != 0:
+            _assert_clean_failure(code, stderr)
+        else:
+            assert "Error" not in stderr
+        assert sorted(p.name for p in Path(folder).iterdir()) == ["gt.csv", "t.csv"]

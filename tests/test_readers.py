@@ -171,3 +171,22 @@ def test_a_consumer_stopping_early_leaves_no_thread_and_closes_the_frames():
     with pytest.raises(ZeroDivisionError), Prefetched(endless()) as prefetched:  # the consumer fails mid-way
         next(prefetched) / 0
     assert set(threading.enumerate()) == before
+
+
+def test_known_sidecar_files_are_skipped_without_a_warning(tmp_path, caplog):
+    """Issue 28.21: the shipped samples (frames beside queries.csv, tracks.csv, labels.csv, scene.json) read quietly;
+    any other file still gets the warning, and is still refused with non_image_files: refuse."""
+    import shutil
+
+    from conftest import SAMPLES
+
+    folder = tmp_path / "ring"
+    shutil.copytree(SAMPLES / "ring", folder)
+    assert {"queries.csv", "tracks.csv", "labels.csv", "scene.json"} <= {p.name for p in folder.iterdir()}
+    with caplog.at_level("WARNING", logger="condtrack"):
+        assert open_frames(FrameSettings(non_image_files="refuse"), folder).info.n_frames == 30
+    assert caplog.records == []
+    (folder / "notes.txt").write_text("hello")
+    with caplog.at_level("WARNING", logger="condtrack"):
+        open_frames(FrameSettings(), folder)
+    assert [r.getMessage() for r in caplog.records] == [f"{folder}: skipping 1 non-image file(s), e.g. 'notes.txt'"]

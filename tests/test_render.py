@@ -11,6 +11,7 @@ from click.testing import CliRunner
 
 from condtrack_cli import SCHEMA_VERSION
 from condtrack_cli import render
+from condtrack_cli.cli import cli
 from condtrack_cli.cli.info import info_command
 from condtrack_cli.cli.render import render_command
 from condtrack_cli.errors import CondtrackError
@@ -234,11 +235,31 @@ def test_render_from_csv_pads_to_the_input(frames_folder, tmp_path):
     short = Tracks(tracks.queries, tracks.xy[:, :5], tracks.cov[:, :5], tracks.visible[:, :5],
                    tracks.method[:, :5], tracks.z[:, :5], tracks.R[:, :5])
     csv.write_text(csv_text(short))
-    result = CliRunner().invoke(render_command, [str(csv), str(frames_folder), "-o", str(tmp_path / "o.mp4")])
+    result = CliRunner().invoke(cli, ["render", str(csv), str(frames_folder), "-o", str(tmp_path / "o.mp4")])
     assert result.exit_code == 0, result.output
     capture = cv2.VideoCapture(str(tmp_path / "o.mp4"))
     assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == N_FRAMES
     capture.release()
+    # issue 28.9: a CSV shorter than the input (every frame has a row since the backward pass) is another input's
+    assert f"{csv} has rows up to frame 4, but {frames_folder} has 96x64 px, 8 frames: was it tracked on another" \
+        in result.stderr
+
+
+def test_render_warns_about_a_csv_with_visible_positions_outside_the_frame(frames_folder, tmp_path):
+    """Issue 28.9: a CSV holds no frame size; visible positions outside the input's frame say it is another input's."""
+    from condtrack_cli.io.write import csv_text
+
+    tracks = make_tracks()
+    xy = tracks.xy.copy()
+    xy[0, 6:, 0] = [WIDTH - 0.75, WIDTH + 10.0]  # inside the last pixel, then 10 px out
+    for name, positions, warned in (("out.csv", xy, True), ("in.csv", tracks.xy, False)):
+        csv = tmp_path / name
+        csv.write_text(csv_text(Tracks(tracks.queries, positions, tracks.cov, tracks.visible, tracks.method,
+                                       tracks.z, tracks.R)))
+        result = CliRunner().invoke(cli, ["render", str(csv), str(frames_folder), "-o", str(tmp_path / "o.mp4")])
+        assert result.exit_code == 0, result.output
+        message = f"{csv} has 1 visible position(s) outside the 96x64 frame of {frames_folder}: was it tracked on"
+        assert (message in result.stderr) == warned, result.stderr
 
 
 def test_info_prints_what_the_file_holds(tmp_path):

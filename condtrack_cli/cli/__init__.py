@@ -15,6 +15,7 @@ import click
 from condtrack_cli import __version__
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.interrupts import exit_code, raise_on_sigterm
+from condtrack_cli.progress import show_warnings
 
 #: Command name -> (its object as ``module:attribute`` under condtrack_cli.cli, the first paragraph of its help).
 #: The paragraph is what ``condtrack --help`` lists; a test keeps it equal to the command's own.
@@ -56,6 +57,7 @@ class LazyGroup(click.Group):
 @click.version_option(__version__, prog_name="condtrack")
 def cli() -> None:
     """Batch point tracking with conditional filters (Arnaud, Mémin & Cernuschi-Frías, RFIA 2004)."""
+    show_warnings(True)  # every command's warnings as ``warning: ...`` lines (track -q silences them)
 
 
 def main() -> None:

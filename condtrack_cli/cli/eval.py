@@ -78,7 +78,9 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
     no occluded scored frame: there is then no visibility to judge. Points are
     matched by point_id; GT points missing from PRED are not scored (their count
     is reported, on stderr with --json). Frames where PRED has no position count
-    as not visible and not within any threshold.
+    as not visible and not within any threshold. Each point's query must lie
+    within 1 px of the GT on its query frame where the GT has it visible, else
+    PRED is refused (tracked from other queries, e.g. detected without -p).
     """
     from condtrack_cli.io.read import read_tracks
 

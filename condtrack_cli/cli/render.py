@@ -37,7 +37,7 @@ def render_command(tracks_path: str, input_path: str, output_path: str, sheet_pa
     """
     from condtrack_cli.frames.readers import FrameSettings, open_frames
     from condtrack_cli.io.read import matched_to_input, read_tracks, stored_particles
-    from condtrack_cli.io.atomic import check_writable
+    from condtrack_cli.io.atomic import check_writable, refuse_overwriting_inputs
     from condtrack_cli.render import check_video_path, render_contact_sheet, render_overlay
 
     tracks_file, output = Path(tracks_path), Path(output_path)
@@ -47,10 +47,9 @@ def render_command(tracks_path: str, input_path: str, output_path: str, sheet_pa
         raise CondtrackError(f"{sheet}: the contact sheet is a PNG (use a .png name)")
     if sheet is not None:  # checked now: the sheet is written after the video
         check_writable(sheet)
+    refuse_overwriting_inputs({"-o": output, "--contact-sheet": sheet}, {"INPUT": input_path, "TRACKS": tracks_file})
     tracks, meta = read_tracks(tracks_file)
     source = open_frames(FrameSettings(), input_path)
-    if output.resolve() == Path(input_path).resolve():
-        raise CondtrackError(f"{output}: the output would replace the input")
     tracks = matched_to_input(tracks, meta, tracks_file, source.info)
     with stored_particles(tracks_file, tracks) as particles:
         written = render_overlay(tracks, source, output, source.info.fps, trail=trail, particles=particles)

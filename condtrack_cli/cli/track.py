@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import click
@@ -10,6 +11,7 @@ from condtrack_cli import registry
 from condtrack_cli.batch_command import batch_options, run_batch, single_run_threads
 from condtrack_cli.config import Config, check_method, load_config
 from condtrack_cli.errors import CondtrackError, read_error
+from condtrack_cli.io.atomic import refuse_overwriting_inputs
 from condtrack_cli.progress import Progress, show_warnings
 
 
@@ -45,7 +47,7 @@ class _MethodChoice(click.Choice):
 @click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
 @click.option("--out-dir", type=click.Path(file_okay=False), help="Batch: folder of the outputs (created if missing), one <input name>.<format> each, and manifest.jsonl.")
 @click.option("--format", "batch_format", type=click.Choice(["h5", "csv"]), default="h5", show_default=True, help="Batch: output format.")
-@click.option("-j", "--jobs", type=click.IntRange(min=1), default=1, show_default=True, help="Batch: inputs processed in parallel.")
+@click.option("-j", "--jobs", type=click.IntRange(min=1), help="Batch: inputs processed in parallel (default 1; not with --scheduler).")
 @batch_options
 @click.option("-q", "--quiet", is_flag=True, help="No progress or summary on stderr.")
 def track(inputs, config_path, queries_path, method, output_path, overlay_path, seed, smooth, overrides, list_path, out_dir,
@@ -65,7 +67,9 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         raise CondtrackError("no INPUT given (a frame folder or a video file, or --from-list FILE)")
     config: Config = load_config(config_path, list(overrides) + (["filter.smooth=true"] if smooth else []), method)
     if len(inputs) == 1 and out_dir is None:
-        single_run_threads(threads, batch)
+        single_run_threads(threads, {**batch, "jobs": jobs})
+        refuse_overwriting_inputs({"-o": output_path, "--overlay": overlay_path},
+                                  {"INPUT": inputs[0], "-p": queries_path, "-c": config_path})
         progress = None if quiet else Progress
         summary = track_input(inputs[0], config, queries_path, output_path, seed, progress, overlay_path)
         if not quiet:
@@ -79,8 +83,10 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
 
 
 def _read_list(path: str) -> list[str]:
+    """The inputs of a --from-list file, one a line (blank lines and # comments skipped), relative to its folder."""
     try:
         lines = Path(path).read_text(encoding="utf-8").splitlines()
     except OSError as error:
         raise read_error(error, f"{path}: cannot read the input list ({error.strerror})") from None
-    return [line.strip() for line in lines if line.strip() and not line.lstrip().startswith("#")]
+    folder = os.path.dirname(path)
+    return [os.path.join(folder, line.strip()) for line in lines if line.strip() and not line.lstrip().startswith("#")]

@@ -13,6 +13,12 @@ truth. A missing row means "no ground truth for that frame": the frame is not
 scored. ``visible`` is 0 or 1; x and y must be finite on visible rows and may be
 ``nan`` on occluded ones.
 
+Before scoring, ``check_queries`` makes sure the ids mean the same points: each
+predicted point's query (HDF5: its ``/queries`` row; CSV: its first row) must lie
+within ``QUERY_TOLERANCE_PX`` of the ground truth on the query frame wherever the
+truth has the point visible there. Points detected on frame 0 (no ``-p``) are
+numbered 0.., and their ids coincide with the truth's by chance only.
+
 Matching a prediction to the ground truth (``align``) is by ``point_id``:
 predicted points absent from the GT are ignored; GT points absent from the
 prediction (no row at all) are not scored and are listed in
@@ -32,10 +38,15 @@ from pathlib import Path
 import numpy as np
 
 from condtrack_cli.errors import CondtrackError, read_error
+from condtrack_cli.io.read import number_column, repeated_rows
 from condtrack_cli.types import Tracks
 
 #: Columns a ground-truth CSV must have.
 GT_COLUMNS = ("point_id", "frame", "x", "y", "visible")
+
+#: Largest distance (px) between a predicted point's query and its ground truth on the query frame
+#: (queries rounded to whole pixels pass: at most 0.71 px away).
+QUERY_TOLERANCE_PX = 1.0
 
 
 @dataclass(frozen=True)
@@ -87,25 +98,6 @@ def pixels_to_tapvid(xy: np.ndarray, width: int, height: int) -> np.ndarray:
     return (np.asarray(xy, np.float64) + 0.5) / np.array([width, height], np.float64)
 
 
-def _column(cells: np.ndarray, lines: np.ndarray, path: Path, name: str) -> np.ndarray:
-    """(N,) str cells of column ``name`` -> (N,) float64; CondtrackError naming the first bad line."""
-    try:
-        return cells.astype(np.float64)
-    except ValueError:
-        bad = next(i for i, cell in enumerate(cells) if not _is_float(cell))
-        raise CondtrackError(
-            f"{path}: line {lines[bad]}, column '{name}': {str(cells[bad])!r} is not a number"
-        ) from None
-
-
-def _is_float(cell: str) -> bool:
-    try:
-        float(cell)
-    except ValueError:
-        return False
-    return True
-
-
 def _refuse_rows(mask: np.ndarray, lines: np.ndarray, path: Path, what: str) -> None:
     """CondtrackError naming the first line where ``mask`` (N,) is True."""
     if mask.any():
@@ -138,7 +130,7 @@ def load_gt_csv(path: str | Path) -> GroundTruth:
         raise CondtrackError(f"{path}: line {wrong[0]} has {len(wrong[1])} fields, the header {len(header)}")
     lines = np.array([number for number, _ in body])  # (N,) file line of each row
     table = np.array([row for _, row in body], dtype=str)  # (N, C)
-    values = {name: _column(table[:, header.index(name)], lines, path, name) for name in GT_COLUMNS}
+    values = {name: number_column(table[:, header.index(name)], np.float64, lines, path, name) for name in GT_COLUMNS}
     pid, frame, vis = values["point_id"], values["frame"], values["visible"]
     xy = np.stack([values["x"], values["y"]], axis=-1)  # (N, 2)
     _refuse_rows(~np.isfinite(pid) | (pid != np.round(pid)), lines, path, "point_id is not an integer")
@@ -151,11 +143,7 @@ def load_gt_csv(path: str | Path) -> GroundTruth:
     point_id, point_index = np.unique(pid.astype(np.int64), return_inverse=True)
     frame = frame.astype(np.int64)
     n_points, n_frames = len(point_id), int(frame.max()) + 1
-    flat = point_index * n_frames + frame  # (N,) cell of each row
-    order = np.argsort(flat, kind="stable")
-    duplicate = np.zeros(len(flat), bool)
-    duplicate[order[1:]] = flat[order[1:]] == flat[order[:-1]]
-    _refuse_rows(duplicate, lines, path, "a second row for the same point_id and frame")
+    _refuse_rows(repeated_rows(point_index, frame), lines, path, "a second row for the same point_id and frame")
 
     gt_xy = np.full((n_points, n_frames, 2), np.nan)
     visible = np.zeros((n_points, n_frames), bool)
@@ -270,3 +258,31 @@ def align(pred: Tracks, gt: GroundTruth) -> Aligned:
         gt_known=_pad_frames(gt.known[gt_index], n_frames, False),
         missing_ids=np.setdiff1d(gt.point_id, common),
     )
+
+
+def check_queries(pred: Tracks, gt: GroundTruth, tolerance: float = QUERY_TOLERANCE_PX) -> None:
+    """Refuse a prediction whose queries are not on the ground truth of the same point_id (module docstring).
+
+    Points without any position, absent from the truth, or whose truth is not
+    visible on their query frame are not checked. CondtrackError names the
+    first point_id whose query is more than ``tolerance`` px from its truth.
+    """
+    present = pred.has_state.any(axis=1)
+    ids = np.asarray(pred.queries.point_id, np.int64)[present]
+    _, pred_index, gt_index = np.intersect1d(ids, gt.point_id, return_indices=True)
+    pred_index = np.flatnonzero(present)[pred_index]
+    frame = np.asarray(pred.queries.frame, np.int64)[pred_index]
+    on_truth = frame < gt.gt_xy.shape[1]
+    frame, query_xy = frame[on_truth], np.asarray(pred.queries.xy, np.float64)[pred_index[on_truth]]
+    gt_index = gt_index[on_truth]
+    truth_xy = gt.gt_xy[gt_index, frame]
+    distance = np.linalg.norm(query_xy - truth_xy, axis=1)
+    wrong = gt.visible[gt_index, frame] & ~(distance <= tolerance)
+    if wrong.any():
+        i = int(np.argmax(wrong))
+        raise CondtrackError(
+            f"point_id {gt.point_id[gt_index[i]]}: the prediction's query on frame {frame[i]} "
+            f"({query_xy[i, 0]:.2f}, {query_xy[i, 1]:.2f}) is {distance[i]:.2f} px from the ground truth "
+            f"({truth_xy[i, 0]:.2f}, {truth_xy[i, 1]:.2f}), more than {tolerance:g} px: track from the ground "
+            "truth's queries (-p); detected points are numbered 0.. and their ids mean nothing to the truth"
+        )

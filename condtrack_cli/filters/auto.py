@@ -99,6 +99,7 @@ from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tra
 
 
 class AutoSettings(StageSettings):
+    filter_sections = ("clf", "cnlf")
     integration_frames: int = Field(3, ge=1, description="frames over which a point's evidence is averaged")
     evidence_margin: float = Field(
         1.0, ge=0, description="change filter when the averaged evidence passes +- this (half squared Mahalanobis units)"

@@ -7,7 +7,9 @@ Conversion to 8-bit grey, the same for every input:
 
 A folder is read in natural sort order (``frame2`` before ``frame10``). Files
 whose extension is not an image extension are skipped with one warning line on
-stderr (``frames.non_image_files: refuse`` makes them an error instead).
+stderr (``frames.non_image_files: refuse`` makes them an error instead), but for
+the known sidecar files (``SIDECAR_FILES``: a sample's queries, ground truth,
+labels and scene description, a README), skipped silently.
 """
 
 from __future__ import annotations
@@ -27,6 +29,9 @@ from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import SequenceInfo
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm")
+
+#: Files a frame folder may hold beside its frames, skipped without a word (``condtrack synth`` writes the first four).
+SIDECAR_FILES = ("queries.csv", "tracks.csv", "labels.csv", "scene.json", "README.md")
 
 
 class FrameSettings(StageSettings):
@@ -66,7 +71,7 @@ class FolderSource:
             raise CondtrackError(f"{broken[0]}: a broken symbolic link (its target '{broken[0].readlink()}' does not exist)")
         names = sorted((p.name for p in entries if p.is_file()), key=natural_key)
         images = [n for n in names if Path(n).suffix.lower() in IMAGE_EXTENSIONS]
-        others = [n for n in names if Path(n).suffix.lower() not in IMAGE_EXTENSIONS]
+        others = [n for n in names if Path(n).suffix.lower() not in IMAGE_EXTENSIONS and n not in SIDECAR_FILES]
         if others and settings.non_image_files == "refuse":
             raise CondtrackError(f"{folder}: '{others[0]}' is not an image file (frames.non_image_files: refuse)")
         if not images:

@@ -3,6 +3,11 @@
 Interrupted (Ctrl-C, SIGTERM), nothing is left: a file is written by one call
 during which the signal is held (:func:`condtrack_cli.interrupts.held_signals`)
 and then discarded; a staging folder is deleted as the interrupt unwinds.
+
+An output path that is a symbolic link is written through: the file it points
+to is replaced (built beside it, in its folder) and the link stays.
+:func:`refuse_overwriting_inputs` refuses, before any work, an output that is
+one of the run's input files.
 """
 
 from __future__ import annotations
@@ -25,10 +30,27 @@ def _umask() -> int:
     return mask
 
 
+def through_links(path: str | Path) -> Path:
+    """``path``, or the path its symbolic link points to (followed to the end): where an output really goes."""
+    path = Path(path)
+    return Path(os.path.realpath(path)) if path.is_symlink() else path
+
+
+def refuse_overwriting_inputs(outputs: dict[str, str | Path | None], inputs: dict[str, str | Path | None]) -> None:
+    """CondtrackError when an output (option -> path) is the same file as an input (option -> path); None is absent."""
+    for output_option, output in outputs.items():
+        for input_option, given in inputs.items():
+            if output is None or given is None or not (Path(output).exists() and Path(given).exists()):
+                continue
+            if os.path.samefile(output, given):
+                raise CondtrackError(f"{output_option} {output}: the same file as the input {input_option} {given}; "
+                                     "writing it would destroy the input")
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path in ``path``'s folder; rename it to ``path`` on success, delete it otherwise."""
-    path = Path(path)
+    path = through_links(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")
@@ -58,7 +80,7 @@ def staging_folder(path: str | Path) -> Iterator[Path]:
     the built item's name (a video keeps its extension, which OpenCV reads) and
     build a folder as well as a file.
     """
-    path = Path(path)
+    path = through_links(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")
@@ -85,7 +107,7 @@ def publish(built: Path, path: str | Path) -> None:
     and is not an empty folder (nothing of the user's is ever deleted).
     """
     try:
-        os.replace(built, path)
+        os.replace(built, through_links(path))
     except OSError as error:
         raise CondtrackError(f"{path}: cannot put the output in place ({error.strerror})") from None
 
@@ -97,7 +119,7 @@ def check_writable(path: str | Path) -> None:
     and a read-only file system fails none): a temporary file is created and
     removed.
     """
-    path = Path(path)
+    path = through_links(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
         raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")

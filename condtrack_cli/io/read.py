@@ -3,25 +3,53 @@
 A CSV holds no frame count: its tracks span frames 0 .. the last frame that has
 a row. Nor does it hold queries: a point's query is taken to be its first row
 (frame 0 once backward tracking filled the frames before the query). A CSV
-whose header is not the schema's exact header line, and an HDF5 file of an
-unknown ``schema_version``, are refused (docs/schema.md). h5py is imported
+whose header is not the schema's exact header line, with a negative frame or a
+second row for one (point_id, frame), and an HDF5 file of an unknown
+``schema_version``, are refused (docs/schema.md). h5py is imported
 only by the functions that open an HDF5 file (start-up time, issue 13).
 """
 
 from __future__ import annotations
 
 import contextlib
+import logging
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
 from condtrack_cli import SCHEMA_VERSION
-from condtrack_cli.errors import CondtrackError, MissingInput
+from condtrack_cli.errors import CondtrackError, MissingInput, plain
 from condtrack_cli.io.formats import is_hdf5, track_format
 from condtrack_cli.io.write import CSV_COLUMNS
 from condtrack_cli.registry import BUILTIN_METHOD_CODES, method_codes
 from condtrack_cli.types import Queries, SequenceInfo, Tracks
+
+
+def repeated_rows(point_id: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """(N,) bool: the rows whose (point_id, frame) pair an earlier row already has."""
+    order = np.lexsort((frame, point_id))  # stable: the first of equal rows stays unmarked
+    repeated = np.zeros(len(frame), bool)
+    repeated[order[1:]] = (point_id[order[1:]] == point_id[order[:-1]]) & (frame[order[1:]] == frame[order[:-1]])
+    return repeated
+
+
+def number_column(cells: np.ndarray, dtype: type, lines: np.ndarray, path: Path, name: str) -> np.ndarray:
+    """(N,) str ``cells`` of column ``name`` as ``dtype``; CondtrackError naming the file line of the first bad cell."""
+    try:
+        return cells.astype(dtype)
+    except (ValueError, OverflowError):
+        bad = next(i for i, cell in enumerate(cells) if not _parses(cell, dtype))
+        kind = "a whole number (64-bit)" if np.issubdtype(dtype, np.integer) else "a number"
+        raise CondtrackError(f"{path}: line {lines[bad]}, column '{name}': {str(cells[bad])!r} is not {kind}") from None
+
+
+def _parses(cell: str, dtype: type) -> bool:
+    try:
+        np.array([cell]).astype(dtype)
+    except (ValueError, OverflowError):
+        return False
+    return True
 
 
 def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
@@ -31,18 +59,24 @@ def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
         raise CondtrackError(f"{path}: cannot read the track file ({error})") from None
     if not lines or tuple(lines[0].split(",")) != CSV_COLUMNS:
         raise CondtrackError(f"{path}: not a condtrack CSV (expected the header {','.join(CSV_COLUMNS)})")
-    cells = [line.split(",") for line in lines[1:] if line]
-    if any(len(row) != len(CSV_COLUMNS) for row in cells):
-        bad = next(i for i, row in enumerate(cells) if len(row) != len(CSV_COLUMNS))
-        raise CondtrackError(f"{path}: row {bad + 2} has {len(cells[bad])} fields, expected {len(CSV_COLUMNS)}")
-    table = np.array(cells, dtype=str).reshape(-1, len(CSV_COLUMNS))
-    try:
-        ids = table[:, 0].astype(np.int64)
-        frames = table[:, 1].astype(np.int64)
-        values = table[:, 2:7].astype(np.float64)
-        visible = table[:, 7].astype(np.int64).astype(bool)
-    except ValueError as error:
-        raise CondtrackError(f"{path}: a value is not a number ({error})") from None
+    numbered = [(number, line.split(",")) for number, line in enumerate(lines[1:], start=2) if line]
+    wrong = next(((number, row) for number, row in numbered if len(row) != len(CSV_COLUMNS)), None)
+    if wrong is not None:
+        raise CondtrackError(f"{path}: line {wrong[0]} has {len(wrong[1])} fields, expected {len(CSV_COLUMNS)}")
+    line_of = np.array([number for number, _ in numbered], dtype=np.int64)  # (N,) file line of each row
+    table = np.array([row for _, row in numbered], dtype=str).reshape(-1, len(CSV_COLUMNS))
+    ids, frames, x, y, cov_xx, cov_xy, cov_yy, visible = (
+        number_column(table[:, i], np.int64 if name in ("point_id", "frame", "visible") else np.float64, line_of,
+                      path, name)
+        for i, name in enumerate(CSV_COLUMNS[:8])
+    )
+    values = np.column_stack([x, y, cov_xx, cov_xy, cov_yy])
+    for bad, what in ((frames < 0, "frame is negative"), ((visible != 0) & (visible != 1), "visible is not 0 or 1"),
+                      (repeated_rows(ids, frames), "a second row for the same point_id and frame")):
+        if bad.any():
+            row = int(np.argmax(bad))
+            raise CondtrackError(f"{path}: line {line_of[row]} (point_id {ids[row]}, frame {frames[row]}): {what}")
+    visible = visible.astype(bool)
     method = _codes_of(path, table[:, 8])
     point_ids, first_row, point_index = np.unique(ids, return_index=True, return_inverse=True)
     n_points, n_frames = len(point_ids), (int(frames.max()) + 1 if len(frames) else 0)
@@ -67,7 +101,7 @@ def _codes_of(path: Path, names: np.ndarray) -> np.ndarray:
     codes = method_codes()
     unknown = set(np.unique(names)) - set(codes)
     if unknown:
-        raise CondtrackError(f"{path}: unknown method {sorted(unknown)[0]!r}; valid: {', '.join(codes)}")
+        raise CondtrackError(f"{path}: unknown method {plain(sorted(unknown)[0])}; valid: {', '.join(codes)}")
     return np.select([names == name for name in codes], np.arange(len(codes))).astype(np.int8)
 
 
@@ -97,7 +131,7 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
             version = meta.get("schema_version")
             if version != SCHEMA_VERSION:
                 raise CondtrackError(
-                    f"{path}: schema_version {version!r} is not supported (this condtrack reads {SCHEMA_VERSION!r})"
+                    f"{path}: schema_version {plain(version)} is not supported (this condtrack reads {SCHEMA_VERSION!r})"
                 )
             t = f["tracks"]
             queries_table = f["queries"][()]
@@ -146,7 +180,12 @@ def stored_particles(path: Path, tracks: Tracks) -> Iterator[Any]:
 
 
 def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, info: SequenceInfo) -> Tracks:
-    """``tracks`` checked against the input; a CSV's tracks (which end at their last row) padded to its length."""
+    """``tracks`` checked against the input; a CSV's tracks (which end at their last row) padded to its length.
+
+    An HDF5 file of another frame size or count is refused. A CSV holds neither:
+    it is refused when it has rows past the input's end, and gets a warning (logger
+    ``condtrack``) when it ends before it or has visible positions outside its frame.
+    """
     ours = f"{info.input} has {info.width}x{info.height} px, {info.n_frames} frames"
     if "width" in meta:
         theirs = (int(meta["width"]), int(meta["height"]), int(meta["n_frames"]))
@@ -158,6 +197,15 @@ def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, in
     extra = info.n_frames - tracks.xy.shape[1]
     if extra < 0:
         raise CondtrackError(f"{tracks_path} has rows up to frame {tracks.xy.shape[1] - 1}, but {ours}")
+    warn = logging.getLogger("condtrack").warning
+    if extra:
+        warn("%s has rows up to frame %d, but %s: was it tracked on another input?", tracks_path,
+             tracks.xy.shape[1] - 1, ours)
+    x, y = tracks.xy[..., 0][tracks.visible], tracks.xy[..., 1][tracks.visible]
+    outside = int(((x < -0.5) | (x > info.width - 0.5) | (y < -0.5) | (y > info.height - 0.5)).sum())
+    if outside:
+        warn("%s has %d visible position(s) outside the %dx%d frame of %s: was it tracked on another input?",
+             tracks_path, outside, info.width, info.height, info.input)
 
     def pad(array: np.ndarray, fill: Any) -> np.ndarray:
         return np.concatenate([array, np.full((len(array), extra) + array.shape[2:], fill, array.dtype)], axis=1)
