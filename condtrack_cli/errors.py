@@ -1,6 +1,7 @@
-"""The exceptions that reach the user as a one-line ``Error: ...`` and an exit code (README, "Exit codes")."""
+"""The exceptions that reach the user as a one-line ``Error: ...`` and an exit code (README, "Exit codes").
 
-import numpy as np
+Imports no numpy: ``condtrack --help`` loads this module (tests/test_startup.py).
+"""
 
 
 class CondtrackError(Exception):
@@ -32,7 +33,7 @@ def plain(value: object) -> str:
 
 
 def _python(value: object) -> object:
-    if isinstance(value, (np.generic, np.ndarray)):
+    if type(value).__module__ == "numpy":  # a numpy scalar or array, recognised without importing numpy
         return value.tolist()
     if isinstance(value, (list, tuple)):
         return type(value)(_python(item) for item in value)

@@ -6,7 +6,6 @@ import logging
 import sys
 
 import click
-import numpy as np
 
 
 def show_warnings(shown: bool) -> None:
@@ -48,6 +47,8 @@ class Progress:
         (name, total), frame = self.passes[0], self.done
         if frame > total:
             (name, total), frame = self.passes[1], frame - total
+        import numpy as np  # here, not at the top: condtrack --help imports this module and no numpy
+
         active = int(np.isfinite(estimate.xy[:, 0]).sum())
         if self.bar is not None:
             self.bar.update(self.task, description=name, total=total, completed=frame, active=active)
