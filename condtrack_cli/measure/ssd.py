@@ -12,7 +12,8 @@ The measurement of one point, all P points at once:
    search_max) and never smaller than the square of half-size search_min;
    candidates whose centre is outside the frame are excluded. The residual
    r_k(z) = sum_y [I~0(x0 + y) - I_k(z + y)]^2 of every offset of the batch's
-   largest window is computed by FFT correlation, r = sum I^2 - 2 sum I T + sum T^2.
+   largest window is sum I^2 - 2 sum I T + sum T^2: the cross term by FFT correlation,
+   the window sums of I and I^2 from the frame's integral images (once per frame).
    The integer z_k is the smallest residual in the gate; it is refined to the
    continuous minimum of eq. (6) within its cell by Gauss-Newton on the
    bilinearly interpolated frame (a parabola through the 3 x 3 residuals is
@@ -63,7 +64,7 @@ from pydantic import Field, ValidationInfo, field_validator
 from condtrack_cli.measure.interface import Measurement
 from condtrack_cli.measure.noise import estimate_noise_sigma, noise_threshold
 from condtrack_cli.measure.response import infinite_covariance, response
-from condtrack_cli.measure.surfaces import extract_templates, matching_cost, refine, ssd_surfaces
+from condtrack_cli.measure.surfaces import FrameSums, extract_templates, frame_sums, matching_cost, refine, ssd_surfaces
 from condtrack_cli.registry import register
 from condtrack_cli.settings import StageSettings
 
@@ -155,8 +156,9 @@ def measure(
     if not known.any():
         return Measurement(z, R, residual, informative)
     half_sizes = _half_sizes(gate_cov, settings)
+    sums = frame_sums(gray, settings.template // 2)
     for points in _search_groups(half_sizes, known, settings):
-        part = _measure_group(gray, templates[points], predicted[points], gate_cov[points],
+        part = _measure_group(gray, sums, templates[points], predicted[points], gate_cov[points],
                               half_sizes[points], settings, sigma)
         z[points], R[points], residual[points], informative[points] = part.z, part.R, part.residual, part.informative
     return Measurement(z, R, residual, informative)
@@ -180,9 +182,10 @@ def _search_groups(half_sizes: np.ndarray, known: np.ndarray, settings: SSDSetti
     return groups
 
 
-def _measure_group(gray: np.ndarray, templates: np.ndarray, predicted: np.ndarray,
+def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, predicted: np.ndarray,
                    gate_cov: np.ndarray, half_sizes: np.ndarray, settings: SSDSettings, sigma: float) -> Measurement:
-    """:func:`measure` of P points with finite predictions and their (P,) search half-sizes."""
+    """:func:`measure` of P points with finite predictions and their (P,) search half-sizes; ``sums``: the frame's
+    :func:`frame_sums`."""
     count = len(predicted)
     t = templates.shape[1]
     half = settings.support // 2
@@ -193,7 +196,7 @@ def _measure_group(gray: np.ndarray, templates: np.ndarray, predicted: np.ndarra
     height, width = gray.shape
     x = centres[:, 0, None, None] + grid[None, None, :]  # (P, 1, G) candidate columns
     y = centres[:, 1, None, None] + grid[None, :, None]  # (P, G, 1) candidate rows
-    r_full = ssd_surfaces(gray, templates, centres, reach, settings.cost)
+    r_full = ssd_surfaces(gray, templates, centres, reach, settings.cost, sums)
     r_full = np.where((x >= 0) & (x < width) & (y >= 0) & (y < height), r_full, np.inf)  # outside the frame
 
     inner = slice(half, half + 2 * largest + 1)  # the candidate offsets, |dx|, |dy| <= largest

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy import fft
 
@@ -39,25 +41,52 @@ def _spectrum(values: np.ndarray, length: int) -> np.ndarray:
     return fft.rfft2(values, s=(length, length), workers=fft_workers())
 
 
+class FrameSums(NamedTuple):
+    """Integral images of a frame with its border replicated ``margin`` px on every side (:func:`frame_sums`).
+
+    ``total`` and ``squares``: (H + 2 margin + 1, W + 2 margin + 1) float64, element [i, j]
+    the sum of I (of I^2) over the padded frame's rows < i and columns < j.
+    """
+
+    total: np.ndarray
+    squares: np.ndarray
+    margin: int
+
+
+def frame_sums(gray: np.ndarray, margin: int) -> FrameSums:
+    """:class:`FrameSums` of the (H, W) float32 frame ``gray`` (``cv2.integral2``, float64 sums): any window's
+    sum of I or I^2 in four look-ups, computed once per frame for every point."""
+    import cv2
+
+    padded = cv2.copyMakeBorder(np.ascontiguousarray(gray, np.float32), margin, margin, margin, margin,
+                                cv2.BORDER_REPLICATE)
+    total, squares = cv2.integral2(padded, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
+    return FrameSums(total, squares, margin)
+
+
 def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, reach: int,
-                  cost: str = "ssd") -> np.ndarray:
+                 cost: str = "ssd", sums: FrameSums | None = None) -> np.ndarray:
     """(P, G, G) float64 r_k (eq. 6) at integer candidates centres + (dx, dy), |dx|, |dy| <= reach, G = 2 reach + 1.
 
-    Element [p, i, j] is the matching cost between templates[p] and the frame patch
-    centred on (centres[p, 0] + j - reach, centres[p, 1] + i - reach), frame border
-    replicated. From each point's frame patch less the template's mean (I, which
-    keeps the cancellation small) and T' = T - mean T: the window sums of I and I^2
-    (cumulative sums) and of I T' (FFT correlation). ``cost`` 'ssd': the SSD,
-    sum [T' - I]^2 = sum I^2 - 2 sum I T' + sum T'^2. 'zero_mean': the SSD after
-    giving the frame patch the template's mean, sum [T' - I']^2 (T', I' mean-free).
-    'normalised': after giving it the template's mean and contrast, sum [T' - a I']^2
-    = 2 sum T'^2 (1 - rho) (a = |T'| / |I'|, rho their correlation; a flat frame
-    patch has rho = 0). See :func:`matching_cost`.
+    Element [p, i, j] is the matching cost between templates[p] (t x t) and the frame
+    patch centred on (centres[p, 0] + j - reach, centres[p, 1] + i - reach), frame
+    border replicated. The cross term sum I T' (T' = T - mean T) is an FFT correlation
+    of each point's frame patch; the window sums of I and I^2 come from the frame's
+    integral images ``sums`` (:func:`frame_sums` with a margin >= t // 2; computed here
+    when None). Exact for every candidate whose centre is inside the frame; the others'
+    values are unspecified (the caller excludes them). ``cost`` 'ssd': the SSD,
+    sum [T - I]^2 = sum I^2 - 2 sum I T' - 2 m sum I + t^2 m^2 + sum T'^2 (m = mean T).
+    'zero_mean': the SSD after giving the frame patch the template's mean,
+    sum [T' - I']^2 (T', I' mean-free). 'normalised': after giving it the template's
+    mean and contrast, sum [T' - a I']^2 = 2 sum T'^2 (1 - rho) (a = |T'| / |I'|, rho
+    their correlation; a flat frame patch has rho = 0). See :func:`matching_cost`.
     """
     height, width = gray.shape
     t = templates.shape[1]
-    span = np.arange(-(reach + t // 2), reach + t // 2 + 1)
     g = 2 * reach + 1
+    if sums is None:
+        sums = frame_sums(gray, t // 2)
+    span = np.arange(-(reach + t // 2), reach + t // 2 + 1)
     length = fft.next_fast_len(len(span), real=True)  # >= the patch side: the kept outputs do not wrap
     image = np.ascontiguousarray(gray).ravel()
     tmpl = templates.astype(np.float64)
@@ -66,14 +95,15 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
     energy = (tmpl * tmpl).sum(axis=(1, 2))[:, None, None]  # sum T'^2
     rows = np.clip(centres[:, 1, None] + span, 0, height - 1)
     cols = np.clip(centres[:, 0, None] + span, 0, width - 1)
-    patch = image.take(rows[:, :, None] * width + cols[:, None, :]) - mean
+    patch = image.take(rows[:, :, None] * width + cols[:, None, :]) - mean  # less mean T: small FFT round-off
     cross = _spectrum(patch, length) * _spectrum(tmpl[:, ::-1, ::-1], length)  # sum_y T'(y) I(z + y)
     sum_it = fft.irfft2(cross, s=(length, length), workers=fft_workers())[:, t - 1 : t - 1 + g, t - 1 : t - 1 + g]
-    sum_sq = _window_sums(patch * patch, t, g)
+    sum_i, sum_sq = (_window_sums(table, sums.margin, centres, reach, t) for table in (sums.total, sums.squares))
+    area = t * t
     if cost == "ssd":
-        return np.maximum(sum_sq - 2.0 * sum_it + energy, 0.0)  # eq. (6)
-    sum_i = _window_sums(patch, t, g)
-    spread = np.maximum(sum_sq - sum_i * sum_i / (t * t), 0.0)  # sum I'^2
+        m = mean[:, :, :1]
+        return np.maximum(sum_sq - 2.0 * m * sum_i + area * m * m - 2.0 * sum_it + energy, 0.0)  # eq. (6)
+    spread = np.maximum(sum_sq - sum_i * sum_i / area, 0.0)  # sum I'^2
     if cost == "zero_mean":
         return np.maximum(spread - 2.0 * sum_it + energy, 0.0)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -81,11 +111,23 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
     return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
 
 
-def _window_sums(values: np.ndarray, t: int, g: int) -> np.ndarray:
-    """(P, g, g) sums of (P, g + t - 1, g + t - 1) ``values`` over each t x t window, by cumulative sums."""
-    total = np.zeros((values.shape[0], values.shape[1] + 1, values.shape[2] + 1))
-    np.cumsum(np.cumsum(values, axis=1), axis=2, out=total[:, 1:, 1:])
-    return total[:, t:, t:] - total[:, :g, t:] - total[:, t:, :g] + total[:, :g, :g]
+def _window_sums(table: np.ndarray, margin: int, centres: np.ndarray, reach: int, t: int) -> np.ndarray:
+    """(P, g, g) sums over the t x t window of every candidate, g = 2 reach + 1, from an integral image.
+
+    table: a :class:`FrameSums` integral image, frame padded by ``margin``; centres: (P, 2)
+    integer (x, y). The window of candidate [i, j] starts at frame row
+    centres_y - reach - t // 2 + i (table row: that + margin) and column likewise; its sum
+    is table[bottom, right] - table[top, right] - table[bottom, left] + table[top, left],
+    with bottom = top + t. Look-ups outside the table are clamped (their candidates'
+    centres lie outside the frame).
+    """
+    g = 2 * reach + 1
+    lines = np.arange(g + t) + margin - reach - t // 2  # table rows (columns) of every window's top and bottom
+    rows = np.clip(centres[:, 1, None] + lines, 0, table.shape[0] - 1)
+    cols = np.clip(centres[:, 0, None] + lines, 0, table.shape[1] - 1)
+    corners = table.ravel().take(rows[:, :, None] * table.shape[1] + cols[:, None, :])  # (P, g + t, g + t)
+    top, bottom = slice(0, g), slice(t, t + g)
+    return corners[:, bottom, bottom] - corners[:, top, bottom] - corners[:, bottom, top] + corners[:, top, top]
 
 
 def matching_cost(templates: np.ndarray, patches: np.ndarray, cost: str) -> np.ndarray:
