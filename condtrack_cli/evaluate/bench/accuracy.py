@@ -75,21 +75,28 @@ def support_table(folder: Path, window: int = 32) -> list[str]:
     For every GT track seen on frames k-1 and k, the error |x_k - (x_{k-1} +
     U(x_{k-1}))| of the default global fit, binned by the mean robust weight
     over the ``window`` square around x_{k-1} (``neighbourhood_support``): the
-    measurement behind ``auto``'s thresholds and the misfit term of Q_k.
+    measurement behind ``auto``'s thresholds and the misfit term of Q_k. Then
+    the one-step error of each motion: the ``robust`` stage's global fit and
+    local field (with and without its block-matching start) and the ``dis``
+    stage's (the default) at their default settings.
     """
     from condtrack_cli.frames.readers import FrameSettings, open_frames
+    from condtrack_cli.motion.dense import DisMotionSettings
     from condtrack_cli.motion.local import LocalMotion
     from condtrack_cli.motion.model import displacement
     from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings
+    from condtrack_cli.motion.stage import make_dis_motion
     from condtrack_cli.motion.state_noise import neighbourhood_support
     from condtrack_cli.types import Frame
 
     truth = load_gt_csv(folder / "tracks.csv")
     settings = RobustMotionSettings()
     motion = GlobalMotion(settings)
-    fields = {"local field": LocalMotion(settings),
-              "local field, no search (local_search 0)": LocalMotion(settings.model_copy(update={"local_search": 0}))}
-    support, error, prev = [], {"dominant model": [], **{name: [] for name in fields}}, None
+    fields = {"local field (robust)": LocalMotion(settings),
+              "local field (robust), no search (local_search 0)": LocalMotion(settings.model_copy(update={"local_search": 0}))}
+    dis = make_dis_motion(DisMotionSettings())
+    support, prev = [], None
+    error = {"dominant model (robust)": [], **{name: [] for name in fields}, "dominant model (dis)": [], "DIS field (dis)": []}
     for index, image in enumerate(open_frames(FrameSettings(), folder)):
         frame = Frame(index, image)
         if prev is not None:
@@ -97,14 +104,18 @@ def support_table(folder: Path, window: int = 32) -> list[str]:
             x, x_next = truth.gt_xy[both, index - 1], truth.gt_xy[both, index]
             fit = motion.fit(prev, frame)
             support.append(neighbourhood_support(fit, x, window))
-            error["dominant model"].append(np.linalg.norm(x + displacement(fit, x) - x_next, axis=1))
+            error["dominant model (robust)"].append(np.linalg.norm(x + displacement(fit, x) - x_next, axis=1))
             for name, local in fields.items():
                 error[name].append(np.linalg.norm(x + local.field(prev, frame, fit).displacement(x) - x_next, axis=1))
+            dis_fit = dis.global_motion.fit(prev, frame)
+            error["dominant model (dis)"].append(np.linalg.norm(x + displacement(dis_fit, x) - x_next, axis=1))
+            dis_field = dis.local_motion.field(prev, frame, dis_fit)
+            error["DIS field (dis)"].append(np.linalg.norm(x + dis_field.displacement(x) - x_next, axis=1))
         prev = frame
     support = np.concatenate(support)
     error = {name: np.concatenate(values) for name, values in error.items()}
-    dominant = error["dominant model"]
-    lines = [f"One-step error of the dominant model on {folder.name}, by support:", "",
+    dominant = error["dominant model (robust)"]
+    lines = [f"One-step error of the dominant model (robust) on {folder.name}, by support:", "",
              "| support | share | median error (px) |", "|---|---|---|"]
     for low, high in zip(SUPPORT_BINS[:-1], SUPPORT_BINS[1:]):
         inside = (support >= low) & (support < high)
