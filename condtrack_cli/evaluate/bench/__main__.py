@@ -18,6 +18,9 @@ the smallest stride that fits) to bound the run time.
 ``--speed`` only the speed comparison and the profile; ``--memory`` only the
 peak memory by clip length (``memory_table``).
 
+``--hard tune|report`` prints only issue 31's hard cases (``hard.py``) on the tuning
+or the reporting seeds.
+
 ``--support SEQUENCE`` prints instead the dominant model's one-step prediction
 error by neighbourhood support (the measurement behind ``auto``'s thresholds),
 then the one-step error of the dominant model and of the local field with and
@@ -37,6 +40,7 @@ from pathlib import Path
 
 from condtrack_cli.evaluate.bench.accuracy import accuracy_table, calibration_table, support_table
 from condtrack_cli.evaluate.bench.common import REPO
+from condtrack_cli.evaluate.bench.hard import REPORT_SEEDS, TUNE_SEEDS, hard_cases_table
 from condtrack_cli.evaluate.bench.speed import batch_table, memory_table, profile_table, speed_table
 from condtrack_cli.evaluate.bench.versus_lk import versus_lk_section
 
@@ -77,9 +81,16 @@ def main() -> None:
                         help="folder of the real sets for the section against OpenCV LK")
     parser.add_argument("--versus-lk", action="store_true",
                         help="only print the section against OpenCV LK (issue 11); results.md is not written")
+    parser.add_argument("--hard", choices=("tune", "report"),
+                        help="only print issue 31's hard cases on the tuning or the reporting seeds")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="with --versus-lk: a config override for every condtrack run (a variant's numbers)")
+                        help="with --versus-lk or --hard: a config override for every condtrack run (a variant's numbers)")
     args = parser.parse_args()
+    if args.hard:
+        args.work.mkdir(parents=True, exist_ok=True)
+        extra = tuple(arg for override in args.set for arg in ("--set", override))
+        print("\n".join(hard_cases_table(args.work, TUNE_SEEDS if args.hard == "tune" else REPORT_SEEDS, extra)))
+        return
     if args.versus_lk:
         args.work.mkdir(parents=True, exist_ok=True)
         extra = tuple(arg for override in args.set for arg in ("--set", override))

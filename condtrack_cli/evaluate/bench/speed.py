@@ -157,7 +157,7 @@ def memory_table(work: Path, methods: tuple[str, ...] = FILTER_METHODS) -> list[
 #: Stages of the profile table: (name, file suffix, function) whose cumulative time is the stage's;
 #: the stages are disjoint (none calls another).
 PROFILE_STAGES = (
-    ("frame decoding (cv2.imread)", "~", "<imread>"),
+    ("frame decoding (cv2.imread; a reader thread, which cProfile does not see)", "~", "<imread>"),
     ("pyramids and gradients (pyramid.deepen)", "motion/pyramid.py", "deepen"),
     ("dense field (DIS, dense.DenseFlow.between)", "motion/dense.py", "between"),
     ("global fit to the field (dense.fit_field)", "motion/dense.py", "fit_field"),

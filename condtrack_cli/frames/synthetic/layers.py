@@ -61,6 +61,24 @@ class _Band:
 
 
 @dataclass(frozen=True)
+class _Rect:
+    """Axis-aligned rectangle [left, right] x [top, bottom] (a card), in source pixels.
+
+    The distance is the smallest to the four sides' lines: exact inside and along the
+    edges, which is all the anti-aliased mask and the margins read.
+    """
+
+    left: float
+    right: float
+    top: float
+    bottom: float
+
+    def sdf(self, u: np.ndarray) -> np.ndarray:
+        x, y = u[..., 0], u[..., 1]
+        return np.minimum(np.minimum(x - self.left, self.right - x), np.minimum(y - self.top, self.bottom - y))
+
+
+@dataclass(frozen=True)
 class _Layer:
     """A source image moved into the frames.
 

@@ -1,4 +1,4 @@
-"""The scenes (camera_motion, occlusion, ring, illumination, fast): layers and motions, assembled with their truth."""
+"""The scenes (camera_motion, occlusion, ring, illumination, fast, jumps, card): layers and motions, assembled with their truth."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import Callable
 import numpy as np
 
 from condtrack_cli.frames.synthetic.affine import _about, _chain, _rotation
-from condtrack_cli.frames.synthetic.layers import _background, _Band, _coeffs, _Disk, _Layer, _render
+from condtrack_cli.frames.synthetic.layers import _background, _Band, _coeffs, _Disk, _Layer, _Rect, _render
 from condtrack_cli.frames.synthetic.truth import BORDER_MARGIN, _geometry, _inside, _pick
 from condtrack_cli.types import Queries
 
@@ -226,12 +226,79 @@ def fast(seed: int = 0, size: tuple[int, int] = DEFAULT_SIZE, n_frames: int = 24
     return _build("fast", seed, noise, (w, h), layers, ["background"], [(0, 0, 60)], noise_rng)
 
 
+def jumps(seed: int = 0, size: tuple[int, int] = DEFAULT_SIZE, n_frames: int = 30, noise: float = 2.0) -> Scene:
+    """Abrupt large motion (the paper's case, issue 31): the camera's velocity is drawn afresh every 3-5 frames.
+
+    Segments alternate slow (2-10 px/frame) and fast (16-28 px/frame, beyond the
+    SSD's default 16 px search) translations, each with a rotation of up to 2 deg/frame
+    and a zoom of up to 2 %/frame about the frame centre. A segment heads back
+    towards the start once the camera is more than 40 px away from it, and zooms
+    against the zoom gathered so far, so that the photograph stays sharp. The
+    "astronaut" photograph, one layer, ~60 background points queried on frame 0.
+    """
+    w, h, rng, noise_rng = _start(seed, size, n_frames, noise)
+    centre = np.array([w - 1, h - 1]) / 2
+    steps, offset, log_zoom, fast_segment = [], np.zeros(2), 0.0, bool(rng.integers(2))
+    while len(steps) < n_frames - 1:
+        speed = rng.uniform(16, 28) if fast_segment else rng.uniform(2, 10)
+        heading = rng.uniform(0, 2 * np.pi)
+        if np.hypot(*offset) > 40:
+            heading = np.arctan2(-offset[1], -offset[0]) + rng.uniform(-0.6, 0.6)
+        zoom = np.exp(-np.sign(log_zoom or rng.choice([-1.0, 1.0])) * rng.uniform(0.0, np.log(1.02)))
+        count = int(rng.integers(3, 6))
+        shift = _rotation(heading) @ [speed, 0.0]
+        steps += [_about(centre, _rotation(np.radians(rng.uniform(-2, 2)), zoom), shift)] * count
+        offset, log_zoom, fast_segment = offset + count * shift, log_zoom + count * np.log(zoom), not fast_segment
+    layers = [_background("astronaut", _chain(steps[: n_frames - 1]), (w, h), rng)]
+    return _build("jumps", seed, noise, (w, h), layers, ["background"], [(0, 0, 60)], noise_rng)
+
+
+def card(seed: int = 0, size: tuple[int, int] = DEFAULT_SIZE, n_frames: int = 30, noise: float = 2.0) -> Scene:
+    """A textured card sweeps in over a slowly panning textured background, stays, and leaves (issue 31).
+
+    Background: the "coffee" photograph panning 0.5-1.5 px/frame with a zoom of
+    0.1-0.3 %/frame. Card (layer 1): a rectangle cut from the "camera" photograph,
+    35-45 % of the frame wide and 50-65 % high, enters from the left or the right
+    edge over 5-7 frames from frame 2 (20-35 px/frame), stays over the middle of
+    the frame for 8-11 frames moving with the background, then leaves across the
+    frame or back the way it came over 5-7 frames; the last frames are clear, so
+    covered points come back. Queries: ~48 background points on frame 0 (many of
+    them covered later) and ~12 card points on its first frame in place.
+    """
+    w, h, rng, noise_rng = _start(seed, size, n_frames, noise)
+    centre = np.array([w - 1, h - 1]) / 2
+    pan = _rotation(rng.uniform(0, 2 * np.pi)) @ [rng.uniform(0.5, 1.5), 0.0]
+    step = _about(centre, np.eye(2) * rng.uniform(1.001, 1.003), pan)
+    background = _background("coffee", _chain([step] * (n_frames - 1)), (w, h), rng)
+
+    half = np.array([rng.uniform(0.175, 0.225) * w, rng.uniform(0.25, 0.325) * h])
+    source = np.array([256.0, 256.0])
+    shape = _Rect(*(source[0] + [-half[0], half[0]]), *(source[1] + [-half[1], half[1]]))
+    side = rng.choice([-1.0, 1.0])  # -1: enters from the left edge
+    outside = centre[0] + side * (centre[0] + half[0] + 4)
+    stay = centre[0] + rng.uniform(-0.1, 0.1) * w
+    arrive = 2 + int(rng.integers(5, 8))
+    leave = arrive + int(rng.integers(8, 12))
+    gone = min(leave + int(rng.integers(5, 8)), n_frames - 3)
+    exit_x = outside if rng.integers(2) else 2 * centre[0] - outside
+    k = np.arange(n_frames, dtype=float)
+    x = np.interp(k, [0, 2, arrive, leave, gone], [outside, outside, stay, stay + (leave - arrive) * pan[0], exit_x])
+    y = centre[1] + np.interp(k, [0, arrive, leave, n_frames - 1], [0, 0, (leave - arrive) * pan[1], (leave - arrive) * pan[1]])
+    to_frame = np.concatenate([np.broadcast_to(np.eye(2), (n_frames, 2, 2)),
+                               (np.stack([x, y], axis=1) - source)[..., None]], axis=2)
+    occluder = _Layer(_coeffs("camera"), to_frame, shape)
+    plan = [(0, 0, 48), (1, arrive, 12)]
+    return _build("card", seed, noise, (w, h), [background, occluder], ["background", "card"], plan, noise_rng)
+
+
 SCENES: dict[str, Callable[..., Scene]] = {
     "camera_motion": camera_motion,
     "occlusion": occlusion,
     "ring": ring,
     "illumination": illumination,
     "fast": fast,
+    "jumps": jumps,
+    "card": card,
 }
 
 
