@@ -211,3 +211,26 @@ def test_cnlf_fixed_lag_path_estimate_is_the_paper_s_on_the_clip_cut_lag_frames_
     assert not np.array_equal(lagged.xy, whole.xy, equal_nan=True)  # the lag does fix earlier frames
     for j in (2, 14):
         np.testing.assert_array_equal(lagged.xy[:, j], forward("null", frames[: j + lag + 1]).xy[:, j])
+
+
+def test_layer_jump_keeps_covered_points_off_their_occluder():
+    """Occlusion sample, CNLF alone: with ``layer_jump`` a covered background point is moved by its layer's
+    motion, not the band's. Measured: covered background rows within 4 px of the truth 0.74 with
+    layer_jump 2 against 0.08 without (the default, the paper's local motion); <δ_avg 0.965 against 0.810."""
+    source, queries, truth = sample_inputs("occlusion")
+    labels = np.loadtxt(SAMPLES / "occlusion" / "labels.csv", delimiter=",", skiprows=1, dtype=int)
+    background = np.isin(queries.point_id, labels[labels[:, 1] == 0, 0])
+    close, delta = {}, {}
+    for jump in (None, 2.0):
+        config = load_config(None, method="cnlf", overrides=[f"filter.cnlf.layer_jump={'null' if jump is None else jump}"])
+        tracks = pipeline.run(source, source.info, config, queries, seed=3)
+        result, data = score_tracks(tracks, truth)
+        after_query = np.arange(tracks.xy.shape[1])[None] > queries.frame[:, None]
+        covered = ~data.gt_visible & data.gt_known & after_query & background[:, None]
+        w, h = source.info.width, source.info.height
+        covered &= (data.gt_xy[..., 0] >= 0) & (data.gt_xy[..., 0] <= w - 1) & (data.gt_xy[..., 1] >= 0) & (data.gt_xy[..., 1] <= h - 1)
+        assert covered.sum() >= 100
+        close[jump] = (np.linalg.norm(tracks.xy - data.gt_xy, axis=-1)[covered] < 4).mean()
+        delta[jump] = result["delta_avg"]
+    assert close[2.0] >= 0.7 and close[None] <= 0.15
+    assert delta[2.0] >= delta[None] + 0.1

@@ -243,3 +243,20 @@ def test_command_line_writes_samples_and_single_scenes(tmp_path):
 def test_unknown_scene_lists_the_valid_names():
     with pytest.raises(ValueError, match="camera_motion, occlusion, ring, illumination, fast"):
         synthetic.make_scene("garden")
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_jumps_and_card_are_the_hard_cases_of_issue_31(seed):
+    """jumps: the camera's step jumps between slow (< 11 px) and fast (> 16 px, beyond the default search)
+    segments; card: background points are covered by the card and seen again once it has left."""
+    jumps = synthetic.make_scene("jumps", seed=seed)
+    step = np.median(np.linalg.norm(np.diff(jumps.tracks, axis=1), axis=2), axis=0)  # (F - 1,) px per frame
+    assert step.max() > 16 and step.min() < 11 and (np.abs(np.diff(step)) > 6).sum() >= 3
+    card = synthetic.make_scene("card", seed=seed)
+    background = card.layer == 0
+    _, h, w = card.frames.shape
+    inside = (card.tracks[..., 0] >= 0) & (card.tracks[..., 0] <= w - 1) & (card.tracks[..., 1] >= 0) & (card.tracks[..., 1] <= h - 1)
+    covered = background[:, None] & inside & ~card.visible
+    back_again = [p for p in np.flatnonzero(covered.any(axis=1)) if card.visible[p, np.flatnonzero(covered[p]).max():].any()]
+    assert len(back_again) >= 10
+    assert not card.visible[card.layer == 1, 0].any()  # the card starts outside the frame

@@ -6,6 +6,12 @@ all started points and all their particles at once:
 - model: the local robust motion on a window around each particle gives the
   mean x^(i) + P(x^(i)) theta_k(x^(i)) =: mu^(i) and Q_k^(i) of eq. (5)
   (``motion/local.py``: one shared field per frame, sampled at the particles);
+  An option (``layer_jump``, off by default, docs/departures.md): a point not
+  found on the previous frame whose local motion now departs from its layer's
+  (a jump beyond ``layer_jump`` px and its layer's step: an occluder's field)
+  is moved by its layer's motion instead, the dominant motion when it moved
+  with it, else its own last measured step, both read from before its last
+  measurement;
 - measure: z_k and R_k in the gate, whose S is the second moment of the
   mixture sum_i w^(i) N(mu^(i), Q^(i)) (paper §5.3) about its mean;
 - propagate with the optimal proposal, closed form for a linear Gaussian
@@ -56,6 +62,12 @@ class CNLFSettings(MeasuredFilterSettings):
     particles: int = Field(100, ge=1, le=10000, description="particles per point (the paper's N = 100)")
     ess_fraction: float = Field(0.5, gt=0, le=1, description="resample when the effective sample size falls below this x N")
     resampling: Literal["systematic", "residual"] = Field("systematic", description="resampling scheme")
+    layer_jump: float | None = Field(
+        None, gt=0,
+        description="a point not found, whose local motion departs from its own layer's by more than this many px "
+                    "(and that motion's size), is moved by its layer's motion, not by what now covers it "
+                    "(null, the default: always the local motion, the paper's; docs/departures.md)",
+    )
     path_lag: int | None = Field(
         10, ge=0,
         description="frames of particle paths kept: a frame's path estimate uses the weights this many frames later "
@@ -141,6 +153,10 @@ class CNLFTracker(Tracker):
         #: frame k - path_lag is fixed and dropped after frame k, unless all are wanted (stored particles, the smoother)
         self.lag = None if settings.path_lag is None or store_particles or smooth else settings.path_lag
         self.transitions = TransitionLog(p, log_w=(n,), mu=(n, 2), Q=(n, 2, 2), excess=(2, 2)) if smooth else None
+        #: each point's layer as last read, from before its last measurement (``_layer_motion``), and as measured
+        #: then: its step (px/frame, NaN: none yet) and whether it moved with the dominant motion
+        self.layer_step, self.layer_dominant = np.full((p, 2), np.nan), np.zeros(p, bool)
+        self.measured_step, self.measured_dominant = np.full((p, 2), np.nan), np.zeros(p, bool)
 
     def step(self, frame: Frame, prev: Frame | None, motion: FrameMotion | None) -> FrameEstimate:
         self.begin_frame()
@@ -170,6 +186,7 @@ class CNLFTracker(Tracker):
         self.particles[index] = sample_gauss2(self.rng, np.repeat(xy[:, None], n, 1), np.repeat(cov[:, None], n, 1))
         self.log_w[index] = -np.log(n)
         self.lineage_start[index] = frame_index
+        self.layer_step[index] = self.measured_step[index] = np.nan  # no layer known until measured twice running
         self._report(index)
 
     def take_over(self, index: np.ndarray, frame_index: int, xy: np.ndarray, cov: np.ndarray,
@@ -202,6 +219,9 @@ class CNLFTracker(Tracker):
         field = motion.local_field
         x = self.particles[index]  # (n, N, 2)
         mu = x + field.displacement(x)  # eq. (5) mean
+        covered = self._covered(index, x_prev, found_before, field, motion.global_fit)
+        if covered.any():
+            mu[covered] = x[covered] + self._layer_displacement(index[covered], x[covered], motion.global_fit)
         Q = field.noise(x)  # (n, N, 2, 2)
         if self.transitions is not None:  # particles drawn this frame from the previous one's: smoothable
             linked = self.lineage_start[index] < frame.index
@@ -218,10 +238,48 @@ class CNLFTracker(Tracker):
         self.z[index], self.R[index] = measured.z, measured.R
         retaken = self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
         disagreement = field.displacement(x_prev) - displacement(motion.global_fit, x_prev)
+        self._remember_layer(index, x_prev, found_before, measured.valid, motion.global_fit)
         self.errors.update(index, gate_mean, gate_cov, measured.z, measured.R_used, measured.valid, self.xy[index],
                            self.cov[index], retaken, disagreement)
         if self.transitions is not None:
             self.transitions.record(frame.index, index, excess=self.errors.reported[index] - self.cov[index])
+
+    def _layer_displacement(self, index: np.ndarray, x: np.ndarray, fit) -> np.ndarray:
+        """(n, N, 2) one-step displacement of particles x (n, N, 2) of points ``index`` by their layer's motion:
+        the dominant motion where the point moved with it, else its last measured step."""
+        dominant = displacement(fit, x.reshape(-1, 2)).reshape(x.shape)
+        own = np.broadcast_to(self.layer_step[index, None], x.shape)
+        return np.where(self.layer_dominant[index, None, None], dominant, own)
+
+    def _covered(self, index: np.ndarray, x_prev: np.ndarray, found_before: np.ndarray, field, fit) -> np.ndarray:
+        """(n,) bool: points not found on the previous frame whose local motion at their estimate x_prev (n, 2)
+        departs from their layer's by more than max(``layer_jump``, the layer's step) px."""
+        jump = self.settings.layer_jump
+        if jump is None:
+            return np.zeros(len(index), bool)
+        known = ~found_before & np.isfinite(self.layer_step[index, 0])
+        layer = self._layer_displacement(index, x_prev[:, None], fit)[:, 0]
+        departure = np.linalg.norm(field.displacement(x_prev) - layer, axis=1)
+        with np.errstate(invalid="ignore"):
+            return known & (departure > np.maximum(jump, np.linalg.norm(layer, axis=1)))
+
+    def _remember_layer(self, index: np.ndarray, x_prev: np.ndarray, found_before: np.ndarray, found: np.ndarray,
+                        fit) -> None:
+        """After a step: points found on both frames have a measured step; the one before it becomes their layer's.
+
+        The layer is read from before the last measurement: a point about to be covered is often last
+        measured with its patch half on its occluder, and that step moves with the occluder.
+        """
+        both = index[found_before & found]
+        if not both.size:
+            return
+        step = self.xy[both] - x_prev[found_before & found]
+        dominant = displacement(fit, x_prev[found_before & found])
+        close = np.linalg.norm(step - dominant, axis=1) <= np.maximum(1.0, 0.1 * np.linalg.norm(dominant, axis=1))
+        earlier = np.isfinite(self.measured_step[both, 0])
+        self.layer_step[both] = np.where(earlier[:, None], self.measured_step[both], step)
+        self.layer_dominant[both] = np.where(earlier, self.measured_dominant[both], close)
+        self.measured_step[both], self.measured_dominant[both] = step, close
 
     def finish(self, history: FrameReports) -> Tracks:
         """The trajectory estimate: the weighted mean of the particle paths with the final weights."""

@@ -52,7 +52,7 @@ Run ``condtrack synth DIR --samples`` to write the shipped samples, or
 ``condtrack synth DIR --scene NAME`` for one scene.
 
 Modules: ``affine`` (maps), ``layers`` (shapes, textures, rendering), ``truth``
-(positions, visibility, query picking), ``scenes`` (the five scenes), ``files`` (writing).
+(positions, visibility, query picking), ``scenes`` (the seven scenes), ``files`` (writing).
 """
 
 from condtrack_cli.frames.synthetic.files import write_samples, write_scene  # noqa: F401
