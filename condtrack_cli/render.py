@@ -24,14 +24,13 @@ for the filled dots, which cv2 cannot batch).
 from __future__ import annotations
 
 import itertools
-import logging
 from pathlib import Path
 from typing import Iterable, Iterator
 
 import cv2
 import numpy as np
 
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, warn
 from condtrack_cli.io.atomic import atomic_path, check_writable, publish, staging_folder
 from condtrack_cli.registry import method_codes
 from condtrack_cli.types import Tracks
@@ -237,7 +236,7 @@ def render_overlay(tracks: Tracks, frames: Iterable[np.ndarray], out_path: str |
     The video is encoded with fourcc ``FOURCC`` in the container named by the
     extension. When no codec opens, the frames are written as ``00000.png``,
     ``00001.png``, ... in the folder ``out_path`` without its extension (which
-    must not exist yet), said once as a warning of the ``condtrack`` logger, and
+    must not exist yet), said once as a :class:`CondtrackWarning`, and
     that folder is returned. Either output is whole or absent: it is built
     beside its final path and renamed at the end. CondtrackError when the number
     of frames is not F.
@@ -263,9 +262,7 @@ def render_overlay(tracks: Tracks, frames: Iterable[np.ndarray], out_path: str |
         folder = out_path.with_suffix("")
         if folder.exists():
             raise CondtrackError(f"{out_path}: no video codec opened and the fallback folder '{folder}' already exists")
-        logging.getLogger("condtrack").warning(
-            "%s: no video codec opened (fourcc %s); writing PNG frames to %s/ instead", out_path, FOURCC, folder
-        )
+        warn(f"{out_path}: no video codec opened (fourcc {FOURCC}); writing PNG frames to {folder}/ instead")
         built = staging / folder.name
         built.mkdir()
         for k, image in enumerate(itertools.chain([first], images)):

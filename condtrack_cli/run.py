@@ -52,19 +52,18 @@ def check_output_path(path: Path) -> None:
 
 def track_input(
     input_path: str, config: Config, queries_path: str | None, output_path: str | None, seed: int,
-    progress_factory=None, overlay_path: str | None = None,
+    progress=None, overlay_path: str | None = None,
 ) -> RunSummary:
     """Track one input and write its output (CSV on stdout when ``output_path`` is None).
 
-    ``progress_factory(forward_frames, backward_frames)`` returns a per-frame callback with a
-    ``close()`` method giving the elapsed seconds; None tracks silently.
+    ``progress(done, total)`` is called after each frame (``api.track_sequence``); None tracks silently.
     """
     if output_path is not None:
         check_output_path(Path(output_path))
     if overlay_path is not None:
         check_overlay_path(Path(overlay_path))
     started = time.perf_counter()
-    result, source = track_sequence(input_path, config, queries_path, seed, progress_factory)
+    result, source = track_sequence(input_path, config, queries_path, seed, progress)
     seconds = time.perf_counter() - started
     tracks, info = result.result, result.info
     if output_path is None:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import logging
-
 import cv2
 import numpy as np
 import pytest
@@ -14,7 +12,7 @@ from condtrack_cli import render
 from condtrack_cli.cli import cli
 from condtrack_cli.cli.info import info_command
 from condtrack_cli.cli.render import render_command
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, CondtrackWarning
 from condtrack_cli.frames.readers import FrameSettings, open_frames
 from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.io.write import write_tracks
@@ -75,22 +73,6 @@ def raw_frames(folder) -> list[np.ndarray]:
     return list(open_frames(FrameSettings(), folder))
 
 
-@pytest.fixture
-def warnings_seen():
-    """Messages of the ``condtrack`` logger during the test (whatever handlers the CLI installed)."""
-    seen: list[str] = []
-
-    class Collect(logging.Handler):
-        def emit(self, record):
-            seen.append(record.getMessage())
-
-    logger = logging.getLogger("condtrack")
-    handler = Collect(logging.WARNING)
-    logger.addHandler(handler)
-    yield seen
-    logger.removeHandler(handler)
-
-
 def test_ellipse_axes_are_the_95_percent_semi_axes():
     cov = np.array([[[4.0, 0.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 9.0]], [[2.0, 1.0], [1.0, 2.0]]])
     axes, angle = ellipse_axes(cov)
@@ -146,7 +128,7 @@ def test_particles_are_drawn_as_pixels(frames_folder):
         render.Overlay(tracks, particles=particles[:, :3])
 
 
-def test_png_folder_when_no_codec_opens(frames_folder, tmp_path, monkeypatch, warnings_seen):
+def test_png_folder_when_no_codec_opens(frames_folder, tmp_path, monkeypatch):
     class ClosedWriter:
         def __init__(self, *args):
             pass
@@ -159,12 +141,12 @@ def test_png_folder_when_no_codec_opens(frames_folder, tmp_path, monkeypatch, wa
 
     ClosedWriter.fourcc = staticmethod(cv2.VideoWriter.fourcc)
     monkeypatch.setattr(render.cv2, "VideoWriter", ClosedWriter)
-    out = render_overlay(make_tracks(), raw_frames(frames_folder), tmp_path / "overlay.mp4", 25.0)
-    assert out == tmp_path / "overlay"
+    with pytest.warns(CondtrackWarning, match="no video codec opened.*PNG") as seen:
+        out = render_overlay(make_tracks(), raw_frames(frames_folder), tmp_path / "overlay.mp4", 25.0)
+    assert out == tmp_path / "overlay" and len(seen) == 1
     names = sorted(p.name for p in out.iterdir())
     assert names == [f"{k:05d}.png" for k in range(N_FRAMES)]
     assert cv2.imread(str(out / "00003.png")).shape == (HEIGHT, WIDTH, 3)
-    assert len(warnings_seen) == 1 and "overlay" in warnings_seen[0] and "PNG" in warnings_seen[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "overlay"]
     with pytest.raises(CondtrackError, match="already exists"):  # never writes into an existing folder
         render_overlay(make_tracks(), raw_frames(frames_folder), tmp_path / "overlay.mp4", 25.0)

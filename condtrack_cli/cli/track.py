@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -49,7 +50,7 @@ class _MethodChoice(click.Choice):
 @click.option("--format", "batch_format", type=click.Choice(["h5", "csv"]), default="h5", show_default=True, help="Batch: output format.")
 @click.option("-j", "--jobs", type=click.IntRange(min=1), help="Batch: inputs processed in parallel (default 1; not with --scheduler).")
 @batch_options
-@click.option("-q", "--quiet", is_flag=True, help="No progress or summary on stderr.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar, summary or warnings on stderr.")
 def track(inputs, config_path, queries_path, method, output_path, overlay_path, seed, smooth, overrides, list_path, out_dir,
           batch_format, jobs, quiet, threads, **batch) -> None:
     """Track points through INPUT, a folder of frames or a video file.
@@ -70,8 +71,8 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         single_run_threads(threads, {**batch, "jobs": jobs})
         refuse_overwriting_inputs({"-o": output_path, "--overlay": overlay_path},
                                   {"INPUT": inputs[0], "-p": queries_path, "-c": config_path})
-        progress = None if quiet else Progress
-        summary = track_input(inputs[0], config, queries_path, output_path, seed, progress, overlay_path)
+        with contextlib.nullcontext() if quiet else Progress() as progress:
+            summary = track_input(inputs[0], config, queries_path, output_path, seed, progress, overlay_path)
         if not quiet:
             click.echo(summary.line(config.method), err=True)
         return
