@@ -334,4 +334,14 @@ def default_yaml() -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["Config", "StageConfig", "StageSettings", "OutputSettings", "load_config", "resolve", "default_yaml", "Field", "Literal"]
+def config_keys() -> list[str]:
+    """Every key of the default configuration, dotted (``motion.levels``), in its order: what ``--set`` completes."""
+
+    def walk(mapping: dict, prefix: str) -> list[str]:
+        return [key for name, value in mapping.items()
+                for key in (walk(value, f"{prefix}{name}.") if isinstance(value, dict) else [f"{prefix}{name}"])]
+
+    return walk(yaml.safe_load(default_yaml()), "")
+
+
+__all__ = ["Config", "StageConfig", "StageSettings", "OutputSettings", "load_config", "resolve", "default_yaml", "config_keys", "Field", "Literal"]
