@@ -45,6 +45,16 @@ class Tracks:
     raw measurements z, R and the optional datasets); ``info`` the sequence;
     ``config`` the resolved config (None for a CSV read back: a CSV holds none);
     ``attributes`` the run's file attributes (config YAML, method, seed, smoothed, and the hashes: ``condtrack_cli.hashes``).
+
+    Example (from the repository's root, as every example here; tests/test_doctests.py runs them):
+
+    >>> import numpy as np
+    >>> import condtrack_cli as ct
+    >>> t = ct.track("sample_sequences/occlusion", queries=np.array([[0, 120.0, 80.0], [5, 200.5, 64.0]]), method="clf")
+    >>> t.xy.shape, t.cov.shape, t.visible.shape, t.info.n_frames
+    ((2, 30, 2), (2, 30, 2, 2), (2, 30), 30)
+    >>> t.method.tolist(), t.queries.frame.tolist(), t.attributes["seed"]
+    (['clf', 'clf'], [0, 5], 0)
     """
 
     result: types.Tracks
@@ -78,11 +88,28 @@ class Tracks:
         return self.result.queries
 
     def to_csv(self, path: str | Path) -> None:
-        """Write the long CSV (docs/schema.md) to ``path`` (a .csv name), atomically."""
+        """Write the long CSV (docs/schema.md) to ``path`` (a .csv name), atomically.
+
+        >>> import condtrack_cli as ct
+        >>> t = ct.track("sample_sequences/occlusion", queries="sample_sequences/occlusion/queries.csv", method="stk")
+        >>> t.to_csv("occlusion.csv")
+        >>> from pathlib import Path
+        >>> Path("occlusion.csv").read_text().splitlines()[0]
+        'point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method'
+        """
         self._write(path, "csv")
 
     def to_hdf5(self, path: str | Path) -> None:
-        """Write the HDF5 file (docs/schema.md) to ``path`` (a .h5 or .hdf5 name), atomically."""
+        """Write the HDF5 file (docs/schema.md) to ``path`` (a .h5 or .hdf5 name), atomically.
+
+        >>> import h5py
+        >>> import condtrack_cli as ct
+        >>> t = ct.track("sample_sequences/occlusion", queries="sample_sequences/occlusion/queries.csv", method="stk")
+        >>> t.to_hdf5("occlusion.h5")
+        >>> with h5py.File("occlusion.h5") as f:
+        ...     print(f["tracks/xy"].shape, f.attrs["method"])
+        (64, 30, 2) stk
+        """
         self._write(path, "hdf5")
 
     def _write(self, path: str | Path, expected: str) -> None:
@@ -143,6 +170,12 @@ def track(
     each frame read (``total``: the forward pass's frames plus the backward pass's).
     Raises :class:`condtrack_cli.errors.CondtrackError` on bad input; what the command
     line prints as ``warning:`` lines are :class:`condtrack_cli.errors.CondtrackWarning` warnings.
+
+    >>> import condtrack_cli as ct
+    >>> done = []
+    >>> t = ct.track("sample_sequences/occlusion", method="stk", progress=lambda k, n: done.append((k, n)))
+    >>> t.xy.shape, done[0], done[-1]  # points detected on frame 0: no backward pass, 30 frames in all
+    ((209, 30, 2), (1, 30), (30, 30))
     """
     if not (isinstance(progress, bool) or callable(progress)):
         raise CondtrackError(f"progress: expected True, False or a callable(done, total), got {type(progress).__name__}")
@@ -156,6 +189,14 @@ def read_tracks(path: str | Path) -> Tracks:
 
     An HDF5 file gives back its sequence, config and run attributes; a CSV holds
     none of them (``config`` is None, ``info`` has the frame count only) nor the measurements.
+
+    >>> import numpy as np
+    >>> import condtrack_cli as ct
+    >>> t = ct.track("sample_sequences/occlusion", queries="sample_sequences/occlusion/queries.csv", method="clf")
+    >>> t.to_hdf5("occlusion.h5")
+    >>> back = ct.read_tracks("occlusion.h5")
+    >>> np.array_equal(back.xy, t.xy, equal_nan=True), back.config == t.config, back.info.width
+    (True, True, 320)
     """
     result, meta = io_read.read_tracks(path)
     info = types.SequenceInfo(
