@@ -12,7 +12,7 @@ from condtrack_cli.errors import CondtrackError
 
 @click.command("render")
 @click.argument("tracks_path", metavar="TRACKS", type=click.Path(dir_okay=False))
-@click.argument("input_path", metavar="INPUT", type=click.Path())
+@click.argument("input_path", metavar="INPUT", type=click.Path(readable=False))  # a path, checked by the run
 @click.option("-o", "--output", "output_path", required=True, type=click.Path(dir_okay=False),
               help="Overlay video: OUT.mp4, .avi, .mov or .mkv (MPEG-4; a folder OUT/ of PNGs when no codec opens).")
 @click.option("--contact-sheet", "sheet_path", type=click.Path(dir_okay=False),

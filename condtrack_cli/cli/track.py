@@ -42,7 +42,7 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 
 
 @click.command("track")
-@click.argument("inputs", metavar="INPUT...", nargs=-1, type=click.Path())
+@click.argument("inputs", metavar="INPUT...", nargs=-1, type=click.Path(readable=False))  # a path, checked by the run
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), help="YAML config (default: configs/default.yaml's values).")
 @click.option("-p", "--queries", "queries_path", type=click.Path(dir_okay=False), help="CSV of query points: frame,x,y[,point_id].")
 @click.option("-m", "--method", type=_MethodChoice(), help="Tracking method (overrides filter.method); see `condtrack stages`.")
