@@ -5,6 +5,8 @@ Mémin & Cernuschi-Frías, "Filtrage conditionnel pour la trajectographie dans d
 séquences d'images", RFIA 2004, with the baselines STK and MDR.
 """
 
+from condtrack_cli.errors import CondtrackError, CondtrackWarning
+
 __version__ = "0.1.0"
 
 #: Version of the output schema (CSV columns, HDF5 layout); see docs/schema.md.

@@ -12,9 +12,11 @@ queries, config and seed::
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import numpy as np
 import yaml
@@ -43,6 +45,16 @@ class Tracks:
     raw measurements z, R and the optional datasets); ``info`` the sequence;
     ``config`` the resolved config (None for a CSV read back: a CSV holds none);
     ``attributes`` the run's file attributes (config YAML, method, seed, smoothed, and the hashes: ``condtrack_cli.hashes``).
+
+    Example (from the repository's root, as every example here; tests/test_doctests.py runs them):
+
+    >>> import numpy as np
+    >>> import condtrack_cli as ct
+    >>> t = ct.track("sample_sequences/occlusion", queries=np.array([[0, 120.0, 80.0], [5, 200.5, 64.0]]), method="clf")
+    >>> t.xy.shape, t.cov.shape, t.visible.shape, t.info.n_frames
+    ((2, 30, 2), (2, 30, 2, 2), (2, 30), 30)
+    >>> t.method.tolist(), t.queries.frame.tolist(), t.attributes["seed"]
+    (['clf', 'clf'], [0, 5], 0)
     """
 
     result: types.Tracks
@@ -76,11 +88,28 @@ class Tracks:
         return self.result.queries
 
     def to_csv(self, path: str | Path) -> None:
-        """Write the long CSV (docs/schema.md) to ``path`` (a .csv name), atomically."""
+        """Write the long CSV (docs/schema.md) to ``path`` (a .csv name), atomically.
+
+        >>> import condtrack_cli as ct
+        >>> t = ct.track("sample_sequences/occlusion", queries="sample_sequences/occlusion/queries.csv", method="stk")
+        >>> t.to_csv("occlusion.csv")
+        >>> from pathlib import Path
+        >>> Path("occlusion.csv").read_text().splitlines()[0]
+        'point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method'
+        """
         self._write(path, "csv")
 
     def to_hdf5(self, path: str | Path) -> None:
-        """Write the HDF5 file (docs/schema.md) to ``path`` (a .h5 or .hdf5 name), atomically."""
+        """Write the HDF5 file (docs/schema.md) to ``path`` (a .h5 or .hdf5 name), atomically.
+
+        >>> import h5py
+        >>> import condtrack_cli as ct
+        >>> t = ct.track("sample_sequences/occlusion", queries="sample_sequences/occlusion/queries.csv", method="stk")
+        >>> t.to_hdf5("occlusion.h5")
+        >>> with h5py.File("occlusion.h5") as f:
+        ...     print(f["tracks/xy"].shape, f.attrs["method"])
+        (64, 30, 2) stk
+        """
         self._write(path, "hdf5")
 
     def _write(self, path: str | Path, expected: str) -> None:
@@ -92,15 +121,15 @@ class Tracks:
 
 def track_sequence(
     input_path: str | Path, config: Config, queries: str | Path | np.ndarray | None = None, seed: int = 0,
-    progress_factory=None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> tuple[Tracks, Any]:
     """Track ``input_path`` (a frame folder or a video) with a validated ``config``: the path of ``condtrack track``.
 
     Returns the tracks and the opened frame source (for an overlay).
 
     ``queries``: a CSV path, an (N, 3) array of ``frame, x, y`` rows, or None
-    (detect on frame 0). ``progress_factory(forward_frames, backward_frames)`` returns a per-frame
-    callback with ``close()`` (:class:`condtrack_cli.progress.Progress`); None tracks silently.
+    (detect on frame 0). ``progress(done, total)`` is called after each frame the run reads: ``total``
+    counts the forward pass's frames and the backward pass's (the frames up to the last query frame).
     """
     given = queries
     frames_stage = config.stage("frames")
@@ -112,12 +141,14 @@ def track_sequence(
     else:
         queries = queries_from_rows(queries, info)
     backward_frames = int(queries.frame.max()) + 1 if queries is not None and queries.frame.max() > 0 else 0
-    progress = progress_factory(info.n_frames, backward_frames) if progress_factory else None
-    try:
-        result = pipeline.run(source, info, config, queries, seed=seed, on_frame=progress)
-    finally:
-        if progress is not None:
-            progress.close()
+    on_frame = None
+    if progress is not None:
+        total, done = info.n_frames + backward_frames, itertools.count(1)
+
+        def on_frame(index: int, estimate: types.FrameEstimate) -> None:
+            progress(next(done), total)
+
+    result = pipeline.run(source, info, config, queries, seed=seed, on_frame=on_frame)
     attributes = {"config": config.to_yaml(), "method": config.method, "seed": seed,
                   "config_hash": config_hash(config), "queries_hash": queries_hash(given), "smoothed": config.smooth}
     return Tracks(result, info, config, attributes), source
@@ -125,7 +156,8 @@ def track_sequence(
 
 def track(
     source: str | Path, queries: str | Path | np.ndarray | None = None, method: str | None = None,
-    config: str | Path | Mapping[str, Any] | None = None, seed: int = 0, progress: bool = False,
+    config: str | Path | Mapping[str, Any] | None = None, seed: int = 0,
+    progress: bool | Callable[[int, int], None] = False,
 ) -> Tracks:
     """Track points through ``source``, a folder of frames or a video file.
 
@@ -133,10 +165,22 @@ def track(
     ``frame, x, y`` rows (point ids 0..N-1), or None to detect points on frame 0.
     method: a registered tracking method (overrides ``filter.method``).
     config: a YAML path or a nested mapping with the YAML's sections, validated
-    like ``condtrack track -c`` (same errors). progress: a progress display on stderr.
-    Raises :class:`condtrack_cli.errors.CondtrackError` on bad input.
+    like ``condtrack track -c`` (same errors). progress: True for the command line's
+    progress bar (on a terminal), or a callable ``progress(done, total)`` called after
+    each frame read (``total``: the forward pass's frames plus the backward pass's).
+    Raises :class:`condtrack_cli.errors.CondtrackError` on bad input; what the command
+    line prints as ``warning:`` lines are :class:`condtrack_cli.errors.CondtrackWarning` warnings.
+
+    >>> import condtrack_cli as ct
+    >>> done = []
+    >>> t = ct.track("sample_sequences/occlusion", method="stk", progress=lambda k, n: done.append((k, n)))
+    >>> t.xy.shape, done[0], done[-1]  # points detected on frame 0: no backward pass, 30 frames in all
+    ((209, 30, 2), (1, 30), (30, 30))
     """
-    tracks, _ = track_sequence(source, load_config(config, [], method), queries, seed, Progress if progress else None)
+    if not (isinstance(progress, bool) or callable(progress)):
+        raise CondtrackError(f"progress: expected True, False or a callable(done, total), got {type(progress).__name__}")
+    with Progress() if progress is True else contextlib.nullcontext(progress or None) as callback:
+        tracks, _ = track_sequence(source, load_config(config, [], method), queries, seed, callback)
     return tracks
 
 
@@ -145,6 +189,14 @@ def read_tracks(path: str | Path) -> Tracks:
 
     An HDF5 file gives back its sequence, config and run attributes; a CSV holds
     none of them (``config`` is None, ``info`` has the frame count only) nor the measurements.
+
+    >>> import numpy as np
+    >>> import condtrack_cli as ct
+    >>> t = ct.track("sample_sequences/occlusion", queries="sample_sequences/occlusion/queries.csv", method="clf")
+    >>> t.to_hdf5("occlusion.h5")
+    >>> back = ct.read_tracks("occlusion.h5")
+    >>> np.array_equal(back.xy, t.xy, equal_nan=True), back.config == t.config, back.info.width
+    (True, True, 320)
     """
     result, meta = io_read.read_tracks(path)
     info = types.SequenceInfo(

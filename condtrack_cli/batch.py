@@ -23,7 +23,6 @@
 from __future__ import annotations
 
 import json
-import logging
 import multiprocessing
 import os
 import signal
@@ -37,7 +36,7 @@ from condtrack_cli import __version__
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.hashes import config_hash, input_fingerprint, queries_hash
-from condtrack_cli.progress import show_warnings
+from condtrack_cli.progress import show_warnings, warnings_shown
 from condtrack_cli.run import track_input
 from condtrack_cli.threads import blas_environment, threads_in_use, use_threads
 
@@ -265,7 +264,7 @@ def run_local(jobs: list[BatchJob], processes: int, on_record: Callable[[ClipRec
         return
     context = multiprocessing.get_context("spawn")  # OpenCV is not fork-safe
     with _Environment(blas_environment(jobs[0].threads)):  # read by the BLAS libraries when the workers import numpy
-        shown = logging.getLogger("condtrack").isEnabledFor(logging.WARNING)
+        shown = warnings_shown()
         pool = context.Pool(min(processes, len(jobs)), initializer=_start_worker, initargs=(shown,))
     try:
         for record in pool.imap_unordered(run_job, jobs):

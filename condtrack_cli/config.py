@@ -15,7 +15,6 @@ two equal.
 from __future__ import annotations
 
 import copy
-import logging
 from collections.abc import Hashable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,7 +24,7 @@ import yaml
 from pydantic import BaseModel, Field, ValidationError
 
 from condtrack_cli import registry
-from condtrack_cli.errors import CondtrackError, plain, read_error
+from condtrack_cli.errors import CondtrackError, plain, read_error, warn
 from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.settings import StageSettings
 
@@ -267,14 +266,12 @@ def filters_used_by(method: str) -> tuple[str, ...]:
 
 
 def _warn_unused_override(config: Config, path: list[str], text: str) -> None:
-    """Warn (logger ``condtrack``) when ``--set`` ``text`` sets a ``filter.<name>`` section that the method does not read."""
+    """Warn (:class:`CondtrackWarning`) when ``--set`` ``text`` sets a ``filter.<name>`` section that the method does not read."""
     if len(path) < 3 or path[0] != "filter" or path[1] not in valid_methods() or path[1] in filters_used_by(config.method):
         return
     users = [name for name in valid_methods() if path[1] in filters_used_by(name)]
-    logging.getLogger("condtrack").warning(
-        "--set %s has no effect: method '%s' does not use filter.%s (-m %s would)", text, config.method, path[1],
-        " or -m ".join(users),
-    )
+    warn(f"--set {text} has no effect: method '{config.method}' does not use filter.{path[1]} "
+         f"(-m {' or -m '.join(users)} would)")
 
 
 def load_config(
@@ -337,4 +334,14 @@ def default_yaml() -> str:
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["Config", "StageConfig", "StageSettings", "OutputSettings", "load_config", "resolve", "default_yaml", "Field", "Literal"]
+def config_keys() -> list[str]:
+    """Every key of the default configuration, dotted (``motion.levels``), in its order: what ``--set`` completes."""
+
+    def walk(mapping: dict, prefix: str) -> list[str]:
+        return [key for name, value in mapping.items()
+                for key in (walk(value, f"{prefix}{name}.") if isinstance(value, dict) else [f"{prefix}{name}"])]
+
+    return walk(yaml.safe_load(default_yaml()), "")
+
+
+__all__ = ["Config", "StageConfig", "StageSettings", "OutputSettings", "load_config", "resolve", "default_yaml", "config_keys", "Field", "Literal"]

@@ -3,6 +3,8 @@
 Imports no numpy: ``condtrack --help`` loads this module (tests/test_startup.py).
 """
 
+import warnings
+
 
 class CondtrackError(Exception):
     """Bad input or configuration: the message names the file, key or frame.
@@ -19,6 +21,19 @@ class MissingInput(CondtrackError):
     """An input path given on the command line does not exist: a usage error, exit code 2 (as Click's)."""
 
     exit_code = 2
+
+
+class CondtrackWarning(UserWarning):
+    """Something the user should know that does not stop the run (a skipped file, a setting with no effect).
+
+    The command line prints each as a ``warning: ...`` line (none with ``track -q``);
+    in Python it is a normal warning: ``warnings.simplefilter("error", CondtrackWarning)`` makes it an exception.
+    """
+
+
+def warn(message: str) -> None:
+    """Issue ``message`` as a :class:`CondtrackWarning`."""
+    warnings.warn(message, CondtrackWarning, stacklevel=2)
 
 
 def read_error(error: OSError | Exception, message: str) -> CondtrackError:

@@ -1,60 +1,78 @@
-"""Per-frame progress of a tracking run on stderr (``condtrack track`` without -q, ``ct.track(progress=True)``)."""
+"""What a run shows on stderr besides its result: ``warning: ...`` lines and a tracking run's progress bar.
+
+Imports neither numpy nor rich at module level: ``condtrack --help`` imports this module.
+"""
 
 from __future__ import annotations
 
-import logging
-import sys
+import time
+import warnings
 
 import click
 
+from condtrack_cli.errors import CondtrackWarning
+
+_shown = True  #: the last ``show_warnings`` choice, handed to a batch's worker processes
+_showwarning = warnings.showwarning  #: what shows the warnings that are not condtrack's
+
 
 def show_warnings(shown: bool) -> None:
-    """The library's warnings (logger ``condtrack``) go to stderr as ``warning: ...`` lines, or nowhere (-q)."""
-    logger = logging.getLogger("condtrack")
-    if not logger.handlers:
-        handler = logging.StreamHandler(sys.stderr)
-        handler.setFormatter(logging.Formatter("warning: %(message)s"))
-        logger.addHandler(handler)
-        logger.propagate = False
-    logger.setLevel(logging.WARNING if shown else logging.ERROR)
+    """Print every :class:`CondtrackWarning` on stderr as a ``warning: ...`` line (``shown``), or none (-q)."""
+    global _shown, _showwarning
+    _shown = shown
+    warnings.simplefilter("always" if shown else "ignore", CondtrackWarning)
+    if warnings.showwarning is not _print_warning:
+        _showwarning, warnings.showwarning = warnings.showwarning, _print_warning
+
+
+def warnings_shown() -> bool:
+    """Whether ``show_warnings`` last chose to print the warnings."""
+    return _shown
+
+
+def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    if issubclass(category, CondtrackWarning):
+        click.echo(f"warning: {message}", err=True)
+    else:
+        _showwarning(message, category, filename, lineno, file, line)
 
 
 class Progress:
-    """Per-frame progress on stderr, per pass: a rich bar on a terminal, a plain line every tenth of a pass otherwise.
+    """A tracking run's progress bar on stderr: frames done of all, frames per second, time left.
 
-    The forward pass reads the ``n_frames`` frames; the backward pass (queries
-    after frame 0) reads ``n_backward`` frames, k_max .. 0.
+    Drawn only when stderr is a terminal (rich's test, so ``TTY_COMPATIBLE=1`` forces
+    it); otherwise nothing. Call it as ``progress(done, total)`` after each frame;
+    use it as a context manager, which removes the bar at the end.
     """
 
-    def __init__(self, n_frames: int, n_backward: int = 0):
-        self.passes = [("forward pass", n_frames)] + ([("backward pass", n_backward)] if n_backward else [])
-        self.done = 0
-        self.bar = None
-        if sys.stderr.isatty():
-            from rich.console import Console
-            from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+    def __init__(self) -> None:
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress as Bar, TextColumn, TimeRemainingColumn
 
-            self.bar = Progress(
-                TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
-                TextColumn("{task.fields[active]} active"), TimeRemainingColumn(),
-                console=Console(stderr=True), transient=True,
-            )
-            self.task = self.bar.add_task(self.passes[0][0], total=n_frames, active=0)
+        console = Console(stderr=True)
+        self.started = time.perf_counter()
+        self.bar = Bar(
+            TextColumn("tracking"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
+            TextColumn("{task.fields[fps]:.1f} fps"), TimeRemainingColumn(), console=console, transient=True,
+        ) if console.is_terminal else None
+        self.task = None
+        self.drawn = False  #: the bar started (an interrupt may arrive inside rich's start)
+
+    def __call__(self, done: int, total: int) -> None:
+        if self.bar is None:
+            return
+        fps = done / max(time.perf_counter() - self.started, 1e-9)
+        if self.task is None:
+            self.task = self.bar.add_task("tracking", total=total, fps=fps)
             self.bar.start()
+            self.drawn = True
+        self.bar.update(self.task, completed=done, fps=fps)
 
-    def __call__(self, index: int, estimate) -> None:
-        self.done += 1
-        (name, total), frame = self.passes[0], self.done
-        if frame > total:
-            (name, total), frame = self.passes[1], frame - total
-        import numpy as np  # here, not at the top: condtrack --help imports this module and no numpy
+    def __enter__(self) -> Progress:
+        return self
 
-        active = int(np.isfinite(estimate.xy[:, 0]).sum())
-        if self.bar is not None:
-            self.bar.update(self.task, description=name, total=total, completed=frame, active=active)
-        elif frame % max(1, total // 10) == 0 or frame == total:
-            click.echo(f"{name}: frame {frame}/{total}: {active} active points", err=True)
-
-    def close(self) -> None:
-        if self.bar is not None:
+    def __exit__(self, *exc) -> None:
+        if self.drawn:
             self.bar.stop()
+        elif self.task is not None:  # interrupted while starting: at least give the cursor back
+            self.bar.console.show_cursor(True)

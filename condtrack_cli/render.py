@@ -11,10 +11,14 @@ the method that produced the row (``PALETTE``, legend in the top-left corner):
   darker with age;
 - its 95% covariance ellipse (chi-square, 2 degrees of freedom: 5.991) where the
   covariance is finite; none where it is NaN (the method has none) or infinite
-  (no information);
+  (no information); a diamond instead where the ellipse's semi-major axis is
+  over the cap (by default half the frame's diagonal: an ellipse larger than the frame);
 - a filled dot when visible, a hollow X when not visible or when the covariance
   is infinite;
 - CNLF particles, when given, as single pixels in a light tint of the cnlf colour.
+
+``OverlayStyle`` thins this out: only the points that move most, ellipses on
+visible points only or none, a smaller cap.
 
 Geometry (ellipse axes and outlines, trail segments, marks) is computed for all
 points at once; only the cv2 drawing calls loop, over colours (and over points
@@ -24,14 +28,14 @@ for the filled dots, which cv2 cannot batch).
 from __future__ import annotations
 
 import itertools
-import logging
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
 
 import cv2
 import numpy as np
 
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, warn
 from condtrack_cli.io.atomic import atomic_path, check_writable, publish, staging_folder
 from condtrack_cli.registry import method_codes
 from condtrack_cli.types import Tracks
@@ -57,10 +61,37 @@ VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv")
 
 _DOT_RADIUS = 2.5       # px, visible mark
 _CROSS_HALF = 3.0       # px, half the side of the not-visible X
+_DIAMOND_HALF = 6.0     # px, half the diagonal of the ellipse-over-the-cap mark
 _ELLIPSE_VERTICES = 64
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 _FONT_SCALE = 0.35
 _HIDDEN_COLOUR = (230, 230, 230)
+
+
+@dataclass(frozen=True)
+class OverlayStyle:
+    """What an overlay draws beyond the points' dots and marks.
+
+    points: draw only the ``points`` points that move most (longest path over
+    the clip; all when None). ellipses: "all", "visible" (on visible points
+    only) or "none". ellipse_cap: largest semi-major axis drawn (px); a larger
+    ellipse is drawn as a diamond around the point. None: half the frame's diagonal.
+    """
+
+    points: int | None = None
+    ellipses: str = "all"
+    ellipse_cap: float | None = None
+
+
+def most_moving(xy: np.ndarray, count: int | None) -> np.ndarray:
+    """(P,) bool: the ``count`` points of ``xy`` (P, F, 2) with the longest paths (all when None; ties: lower index)."""
+    chosen = np.ones(len(xy), bool)
+    if count is not None and count < len(xy):
+        steps = np.linalg.norm(np.diff(xy, axis=1), axis=-1)
+        length = np.where(np.isfinite(steps), steps, 0.0).sum(axis=1)
+        chosen[:] = False
+        chosen[np.argsort(-length, kind="stable")[:count]] = True
+    return chosen
 
 
 def ellipse_axes(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -77,13 +108,9 @@ def ellipse_axes(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.sqrt(CHI2_95_2DOF * eigen), 0.5 * np.arctan2(2 * b, a - c)
 
 
-def ellipse_outlines(centre: np.ndarray, cov: np.ndarray, max_axis: float) -> np.ndarray:
-    """(K, V, 2) closed outlines of the 95% ellipses around ``centre`` (K, 2) of ``cov`` (K, 2, 2).
-
-    Semi-axes are clipped to ``max_axis`` px so that huge (but finite) ellipses stay drawable.
-    """
+def ellipse_outlines(centre: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """(K, V, 2) closed outlines of the 95% ellipses around ``centre`` (K, 2) of ``cov`` (K, 2, 2)."""
     axes, angle = ellipse_axes(cov)
-    axes = np.minimum(axes, max_axis)
     t = np.linspace(0.0, 2 * np.pi, _ELLIPSE_VERTICES, endpoint=False)
     u, v = axes[:, :1] * np.cos(t), axes[:, 1:] * np.sin(t)  # (K, V) in the ellipse's own frame
     cos, sin = np.cos(angle)[:, None], np.sin(angle)[:, None]
@@ -119,46 +146,56 @@ class Overlay:
     """Draws tracks on their frames; one instance per (tracks, particles) pair.
 
     tracks: P points over F frames. trail: number of past positions joined by
-    the trail (1 = none). particles: (P, F, N, 2) px, NaN where absent, or None;
+    the trail (1 = none). style: :class:`OverlayStyle`. particles: (P, F, N, 2) px, NaN where absent, or None;
     any array-like indexable as ``particles[:, k]`` (an open h5py dataset is read
     one frame at a time).
     """
 
-    def __init__(self, tracks: Tracks, *, trail: int = 10, particles=None):
+    def __init__(self, tracks: Tracks, *, trail: int = 10, particles=None, style: OverlayStyle = OverlayStyle()):
         if trail < 1:
             raise ValueError(f"trail must be at least 1, got {trail}")
         if particles is not None and (
             len(particles.shape) != 4 or particles.shape[:2] != tracks.xy.shape[:2] or particles.shape[3] != 2
         ):
             raise ValueError(f"particles must be (P, F, N, 2) = {tracks.xy.shape[:2]} + (N, 2), got {particles.shape}")
-        self.tracks, self.trail, self.particles = tracks, trail, particles
+        if style.ellipses not in ("all", "visible", "none"):
+            raise ValueError(f"ellipses must be all, visible or none, got {style.ellipses!r}")
+        self.tracks, self.trail, self.particles, self.style = tracks, trail, particles, style
         self.n_frames = tracks.xy.shape[1]
-        self.methods = [int(m) for m in np.unique(tracks.method) if m >= 0]  # methods present, for the legend
+        self.shown = most_moving(tracks.xy, style.points)  # (P,) the points drawn
+        self.methods = [int(m) for m in np.unique(tracks.method[self.shown]) if m >= 0]  # for the legend
 
     def draw(self, k: int, frame: np.ndarray) -> np.ndarray:
         """Frame ``k`` (H, W) uint8 grey -> (H, W, 3) uint8 BGR with the overlay drawn."""
         image = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
         t = self.tracks
         xy, cov, method = t.xy[:, k], t.cov[:, k], t.method[:, k]
-        has = np.isfinite(xy).all(axis=-1)
+        has = np.isfinite(xy).all(axis=-1) & self.shown
         unbounded = has & np.isinf(cov).any(axis=(1, 2))
-        with_ellipse = has & np.isfinite(cov).all(axis=(1, 2))
+        with_ellipse = has & np.isfinite(cov).all(axis=(1, 2)) & (self.style.ellipses != "none")
+        if self.style.ellipses == "visible":
+            with_ellipse &= t.visible[:, k]
+        cap = self.style.ellipse_cap or np.hypot(*image.shape[:2]) / 2
+        oversized = with_ellipse.copy()
+        oversized[with_ellipse] = ellipse_axes(cov[with_ellipse])[0][:, 0] > cap
+        with_ellipse &= ~oversized
         hidden = has & (~t.visible[:, k] | unbounded)
         if self.particles is not None:
-            self._draw_particles(image, np.asarray(self.particles[:, k], dtype=np.float64))
+            self._draw_particles(image, np.asarray(self.particles[:, k], dtype=np.float64)[self.shown])
         self._draw_trails(image, k)
-        max_axis = 4.0 * (image.shape[0] + image.shape[1])
-        outlines = ellipse_outlines(xy[with_ellipse], cov[with_ellipse], max_axis)
+        outlines = ellipse_outlines(xy[with_ellipse], cov[with_ellipse])
+        diamonds = xy[oversized][:, None, :] + _DIAMOND_HALF * np.array([[0, -1], [1, 0], [0, 1], [-1, 0]])
         crosses = xy[hidden][:, None, None, :] + _CROSS_HALF * np.array([[[-1, -1], [1, 1]], [[-1, 1], [1, -1]]])
         dots = _fixed(xy[has & ~hidden])
         radius = int(_DOT_RADIUS * (1 << SHIFT))
         for code in self.methods:
             colour = _colour(code)
             _polylines(image, outlines[method[with_ellipse] == code], colour, closed=True)
+            _polylines(image, diamonds[method[oversized] == code], colour, closed=True)
             _polylines(image, crosses[method[hidden] == code].reshape(-1, 2, 2), colour, closed=False)
             for centre in dots[method[has & ~hidden] == code].tolist():
                 cv2.circle(image, centre, radius, colour, -1, cv2.LINE_AA, SHIFT)
-        self._draw_legend(image)
+        self._draw_legend(image, diamonds=bool(oversized.any()))
         return image
 
     def _draw_trails(self, image: np.ndarray, k: int) -> None:
@@ -172,7 +209,7 @@ class Overlay:
             age = k - (first + 1 + column)  # 0 for the segment ending on frame k
             factor = 1.0 - 0.6 * age / self.trail
             for code in self.methods:
-                chosen = valid[:, column] & (method[:, column] == code)
+                chosen = valid[:, column] & (method[:, column] == code) & self.shown
                 _polylines(image, segments[chosen, column], _colour(code, factor), closed=False)
 
     def _draw_particles(self, image: np.ndarray, particles: np.ndarray) -> None:
@@ -184,13 +221,15 @@ class Overlay:
         tint = (PALETTE["cnlf"] + 255) // 2
         image[row[inside], column[inside]] = tint
 
-    def _draw_legend(self, image: np.ndarray) -> None:
-        """Method names in their colours, then the not-visible mark, in the top-left corner."""
+    def _draw_legend(self, image: np.ndarray, diamonds: bool) -> None:
+        """Method names in their colours, then the marks' meanings (the diamond's when one is drawn), top-left."""
         (_, height), baseline = cv2.getTextSize("Xg", _FONT, _FONT_SCALE, 1)
         step = height + baseline + 3
-        for row, code in enumerate(self.methods):
-            _put_text(image, method_codes()[code], 4, 4 + height + row * step, _colour(code))
-        _put_text(image, "x = not visible", 4, 4 + height + len(self.methods) * step, _HIDDEN_COLOUR)
+        rows = [(method_codes()[code], _colour(code)) for code in self.methods] + [("x = not visible", _HIDDEN_COLOUR)]
+        if diamonds:
+            rows.append(("<> = ellipse over the cap", _HIDDEN_COLOUR))
+        for row, (text, colour) in enumerate(rows):
+            _put_text(image, text, 4, 4 + height + row * step, colour)
 
 
 def _drawn(overlay: Overlay, frames: Iterable[np.ndarray], out_path: Path) -> Iterator[np.ndarray]:
@@ -226,24 +265,24 @@ def check_video_path(path: Path) -> None:
 
 
 def render_overlay(tracks: Tracks, frames: Iterable[np.ndarray], out_path: str | Path, fps: float, *,
-                   trail: int = 10, particles=None) -> Path:
+                   trail: int = 10, particles=None, style: OverlayStyle = OverlayStyle()) -> Path:
     """Draw ``tracks`` on ``frames`` and write the video ``out_path``; returns the path written.
 
     tracks: P points over F frames (pixel convention of the module docstring).
     frames: the F frames, (H, W) uint8 grey, streamed (e.g. a frame source of
     ``condtrack_cli.frames.readers``). fps: frame rate of the video;
-    ``DEFAULT_FPS`` when not positive. trail, particles: as in :class:`Overlay`.
+    ``DEFAULT_FPS`` when not positive. trail, particles, style: as in :class:`Overlay`.
 
     The video is encoded with fourcc ``FOURCC`` in the container named by the
     extension. When no codec opens, the frames are written as ``00000.png``,
     ``00001.png``, ... in the folder ``out_path`` without its extension (which
-    must not exist yet), said once as a warning of the ``condtrack`` logger, and
+    must not exist yet), said once as a :class:`CondtrackWarning`, and
     that folder is returned. Either output is whole or absent: it is built
     beside its final path and renamed at the end. CondtrackError when the number
     of frames is not F.
     """
     out_path = Path(out_path)
-    images = _drawn(Overlay(tracks, trail=trail, particles=particles), frames, out_path)
+    images = _drawn(Overlay(tracks, trail=trail, particles=particles, style=style), frames, out_path)
     first = next(images, None)
     if first is None:
         raise CondtrackError(f"{out_path}: no frame to render")
@@ -263,9 +302,7 @@ def render_overlay(tracks: Tracks, frames: Iterable[np.ndarray], out_path: str |
         folder = out_path.with_suffix("")
         if folder.exists():
             raise CondtrackError(f"{out_path}: no video codec opened and the fallback folder '{folder}' already exists")
-        logging.getLogger("condtrack").warning(
-            "%s: no video codec opened (fourcc %s); writing PNG frames to %s/ instead", out_path, FOURCC, folder
-        )
+        warn(f"{out_path}: no video codec opened (fourcc {FOURCC}); writing PNG frames to {folder}/ instead")
         built = staging / folder.name
         built.mkdir()
         for k, image in enumerate(itertools.chain([first], images)):
@@ -280,7 +317,8 @@ def sheet_frames(n_frames: int, n: int) -> np.ndarray:
 
 
 def render_contact_sheet(tracks: Tracks, frames: Iterable[np.ndarray], out_png: str | Path, n: int = 6,
-                         columns: int = 3, *, trail: int = 10, particles=None) -> Path:
+                         columns: int = 3, *, trail: int = 10, particles=None,
+                         style: OverlayStyle = OverlayStyle()) -> Path:
     """Tile ``n`` evenly spaced frames (:func:`sheet_frames`), overlay drawn, into one PNG; returns its path.
 
     frames: the tracks' F frames, (H, W) uint8, streamed (read up to the last
@@ -291,7 +329,7 @@ def render_contact_sheet(tracks: Tracks, frames: Iterable[np.ndarray], out_png: 
     out_png = Path(out_png)
     if n < 1 or columns < 1:
         raise ValueError(f"n and columns must be at least 1, got {n} and {columns}")
-    overlay = Overlay(tracks, trail=trail, particles=particles)
+    overlay = Overlay(tracks, trail=trail, particles=particles, style=style)
     picks = sheet_frames(overlay.n_frames, n)
     if not len(picks):
         raise CondtrackError(f"{out_png}: no frame to render")

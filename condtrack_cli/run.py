@@ -52,19 +52,19 @@ def check_output_path(path: Path) -> None:
 
 def track_input(
     input_path: str, config: Config, queries_path: str | None, output_path: str | None, seed: int,
-    progress_factory=None, overlay_path: str | None = None,
+    progress=None, overlay_path: str | None = None, overlay_style=None,
 ) -> RunSummary:
     """Track one input and write its output (CSV on stdout when ``output_path`` is None).
 
-    ``progress_factory(forward_frames, backward_frames)`` returns a per-frame callback with a
-    ``close()`` method giving the elapsed seconds; None tracks silently.
+    ``progress(done, total)`` is called after each frame (``api.track_sequence``); None tracks silently.
+    ``overlay_style``: what the overlay draws (``render.OverlayStyle``; None: everything).
     """
     if output_path is not None:
         check_output_path(Path(output_path))
     if overlay_path is not None:
         check_overlay_path(Path(overlay_path))
     started = time.perf_counter()
-    result, source = track_sequence(input_path, config, queries_path, seed, progress_factory)
+    result, source = track_sequence(input_path, config, queries_path, seed, progress)
     seconds = time.perf_counter() - started
     tracks, info = result.result, result.info
     if output_path is None:
@@ -72,9 +72,9 @@ def track_input(
     else:
         write_tracks(tracks, output_path, info, result.attributes, config.output)
     if overlay_path is not None:
-        from condtrack_cli.render import render_overlay
+        from condtrack_cli.render import OverlayStyle, render_overlay
 
-        render_overlay(tracks, source, overlay_path, info.fps)
+        render_overlay(tracks, source, overlay_path, info.fps, style=overlay_style or OverlayStyle())
     rows = tracks.has_state
     return RunSummary(
         input=input_path, output=output_path, n_points=len(tracks.queries), n_frames=info.n_frames,

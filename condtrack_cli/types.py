@@ -11,12 +11,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import TYPE_CHECKING
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from condtrack_cli.motion.pyramid import Pyramid
 
 
 @dataclass(frozen=True)
@@ -48,6 +44,19 @@ class Queries:
 
     def __len__(self) -> int:
         return len(self.point_id)
+
+
+@dataclass(frozen=True)
+class Pyramid:
+    """A frame's Gaussian pyramid with its gradients.
+
+    base: (H, W) float32, the frame smoothed by a Gaussian of std ``motion.pyramid.PRESMOOTH_SIGMA``
+    px (level 0). levels: finest first, (h_l, w_l, 3) float32 [I, dI/dx, dI/dy]
+    in grey levels and grey per pixel of that level (3x3 Sobel / 8).
+    """
+
+    base: np.ndarray
+    levels: list[np.ndarray]
 
 
 @dataclass

@@ -15,6 +15,8 @@ REPO = Path(__file__).resolve().parents[1]
 ASSETS = REPO / "condtrack_cli" / "frames" / "assets"
 SAMPLES = REPO / "sample_sequences"
 SHARED_DATA = REPO.parent / "shared" / "data"
+#: Environment under which rich (and so the progress bar) takes stderr for an interactive terminal.
+FORCED_TERMINAL = {"TTY_COMPATIBLE": "1", "TTY_INTERACTIVE": "1", "TERM": "xterm", "COLUMNS": "120"}
 
 
 def load_asset(name: str) -> np.ndarray:
@@ -53,19 +55,6 @@ def shifted_folder(tmp_path, photo) -> tuple[Path, np.ndarray]:
     for k, (dx, dy) in enumerate(shifts):
         cv2.imwrite(str(folder / f"f{k}.png"), translate(crop, dx, dy))
     return folder, shifts
-
-
-@pytest.fixture(autouse=True)
-def fresh_condtrack_logger():
-    """Undo what an in-process CLI run did to the ``condtrack`` logger (level, handlers)."""
-    yield
-    import logging
-
-    logger = logging.getLogger("condtrack")
-    for handler in list(logger.handlers):
-        logger.removeHandler(handler)
-    logger.setLevel(logging.NOTSET)
-    logger.propagate = True
 
 
 def sample_inputs(name: str):

@@ -101,3 +101,24 @@ def test_config_mapping_is_validated_like_the_yaml(tmp_path):
     from_yaml = ct.track(str(SAMPLE), queries=str(SAMPLE / "queries.csv"), config=tmp_path / "c.yaml")
     from_dict = ct.track(str(SAMPLE), queries=str(SAMPLE / "queries.csv"), config={"filter": {"method": "mdr"}})
     assert from_yaml.config == from_dict.config and from_yaml.xy.tobytes() == from_dict.xy.tobytes()
+
+
+def test_progress_callback_gets_every_frame_of_both_passes():
+    calls = []
+    ct.track(str(SAMPLE), queries=str(SAMPLE / "queries.csv"), method="stk", progress=lambda *a: calls.append(a))
+    assert calls == [(done, 38) for done in range(1, 39)]  # 30 forward frames, then frames 7..0 backward
+    with pytest.raises(CondtrackError, match="progress: expected True, False or a callable"):
+        ct.track(str(SAMPLE), progress="yes")
+
+
+def test_warnings_are_python_warnings_that_tests_can_make_errors(tmp_path):
+    """What the command line prints as ``warning:`` lines (here a skipped file) is a CondtrackWarning."""
+    folder = tmp_path / "clip"
+    folder.mkdir()
+    for frame in sorted(SAMPLE.glob("*.png"))[:3]:
+        (folder / frame.name).symlink_to(frame)
+    (folder / "notes.txt").write_text("hello")
+    with pytest.warns(ct.CondtrackWarning, match=r"clip: skipping 1 non-image file\(s\), e.g. 'notes.txt'"):
+        ct.track(str(folder), method="stk")
+    with pytest.raises(ct.CondtrackWarning):  # this suite makes every warning an error (pyproject.toml)
+        ct.track(str(folder), method="stk")

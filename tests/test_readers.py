@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, CondtrackWarning
 from condtrack_cli.frames.prefetch import Prefetched
 from condtrack_cli.frames.readers import FrameSettings, natural_key, open_frames, to_gray8
 
@@ -86,7 +86,8 @@ def test_bad_folders(tmp_path):
     (tmp_path / "notes.txt").write_text("hello")
     with pytest.raises(CondtrackError, match="notes.txt.*not an image"):
         open_frames(FrameSettings(non_image_files="refuse"), tmp_path)
-    source = open_frames(FrameSettings(), tmp_path)
+    with pytest.warns(CondtrackWarning, match="skipping 1 non-image file"):
+        source = open_frames(FrameSettings(), tmp_path)
     frames = iter(source)
     next(frames)
     with pytest.raises(CondtrackError, match=r"frame 1 .*size 9x8 differs"):
@@ -173,7 +174,7 @@ def test_a_consumer_stopping_early_leaves_no_thread_and_closes_the_frames():
     assert set(threading.enumerate()) == before
 
 
-def test_known_sidecar_files_are_skipped_without_a_warning(tmp_path, caplog):
+def test_known_sidecar_files_are_skipped_without_a_warning(tmp_path):
     """Issue 28.21: the shipped samples (frames beside queries.csv, tracks.csv, labels.csv, scene.json) read quietly;
     any other file still gets the warning, and is still refused with non_image_files: refuse."""
     import shutil
@@ -183,10 +184,8 @@ def test_known_sidecar_files_are_skipped_without_a_warning(tmp_path, caplog):
     folder = tmp_path / "ring"
     shutil.copytree(SAMPLES / "ring", folder)
     assert {"queries.csv", "tracks.csv", "labels.csv", "scene.json"} <= {p.name for p in folder.iterdir()}
-    with caplog.at_level("WARNING", logger="condtrack"):
-        assert open_frames(FrameSettings(non_image_files="refuse"), folder).info.n_frames == 30
-    assert caplog.records == []
+    assert open_frames(FrameSettings(non_image_files="refuse"), folder).info.n_frames == 30  # warnings are errors
     (folder / "notes.txt").write_text("hello")
-    with caplog.at_level("WARNING", logger="condtrack"):
+    with pytest.warns(CondtrackWarning) as seen:
         open_frames(FrameSettings(), folder)
-    assert [r.getMessage() for r in caplog.records] == [f"{folder}: skipping 1 non-image file(s), e.g. 'notes.txt'"]
+    assert [str(w.message) for w in seen] == [f"{folder}: skipping 1 non-image file(s), e.g. 'notes.txt'"]

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import logging
-
 import cv2
 import numpy as np
 import pytest
@@ -14,12 +12,13 @@ from condtrack_cli import render
 from condtrack_cli.cli import cli
 from condtrack_cli.cli.info import info_command
 from condtrack_cli.cli.render import render_command
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, CondtrackWarning
 from condtrack_cli.frames.readers import FrameSettings, open_frames
 from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.io.write import write_tracks
 from condtrack_cli.render import ellipse_axes, render_contact_sheet, render_overlay, sheet_frames
 from condtrack_cli.types import Queries, SequenceInfo, Tracks
+from conftest import SAMPLES
 
 WIDTH, HEIGHT, N_FRAMES = 96, 64, 8
 CONFIG = "x: 1\n"
@@ -73,22 +72,6 @@ def write_h5(path, width=WIDTH, height=HEIGHT, n_frames=N_FRAMES):
 
 def raw_frames(folder) -> list[np.ndarray]:
     return list(open_frames(FrameSettings(), folder))
-
-
-@pytest.fixture
-def warnings_seen():
-    """Messages of the ``condtrack`` logger during the test (whatever handlers the CLI installed)."""
-    seen: list[str] = []
-
-    class Collect(logging.Handler):
-        def emit(self, record):
-            seen.append(record.getMessage())
-
-    logger = logging.getLogger("condtrack")
-    handler = Collect(logging.WARNING)
-    logger.addHandler(handler)
-    yield seen
-    logger.removeHandler(handler)
 
 
 def test_ellipse_axes_are_the_95_percent_semi_axes():
@@ -146,7 +129,7 @@ def test_particles_are_drawn_as_pixels(frames_folder):
         render.Overlay(tracks, particles=particles[:, :3])
 
 
-def test_png_folder_when_no_codec_opens(frames_folder, tmp_path, monkeypatch, warnings_seen):
+def test_png_folder_when_no_codec_opens(frames_folder, tmp_path, monkeypatch):
     class ClosedWriter:
         def __init__(self, *args):
             pass
@@ -159,12 +142,12 @@ def test_png_folder_when_no_codec_opens(frames_folder, tmp_path, monkeypatch, wa
 
     ClosedWriter.fourcc = staticmethod(cv2.VideoWriter.fourcc)
     monkeypatch.setattr(render.cv2, "VideoWriter", ClosedWriter)
-    out = render_overlay(make_tracks(), raw_frames(frames_folder), tmp_path / "overlay.mp4", 25.0)
-    assert out == tmp_path / "overlay"
+    with pytest.warns(CondtrackWarning, match="no video codec opened.*PNG") as seen:
+        out = render_overlay(make_tracks(), raw_frames(frames_folder), tmp_path / "overlay.mp4", 25.0)
+    assert out == tmp_path / "overlay" and len(seen) == 1
     names = sorted(p.name for p in out.iterdir())
     assert names == [f"{k:05d}.png" for k in range(N_FRAMES)]
     assert cv2.imread(str(out / "00003.png")).shape == (HEIGHT, WIDTH, 3)
-    assert len(warnings_seen) == 1 and "overlay" in warnings_seen[0] and "PNG" in warnings_seen[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "overlay"]
     with pytest.raises(CondtrackError, match="already exists"):  # never writes into an existing folder
         render_overlay(make_tracks(), raw_frames(frames_folder), tmp_path / "overlay.mp4", 25.0)
@@ -303,3 +286,76 @@ def test_render_checks_every_output_folder_before_work(frames_folder, tmp_path):
     ])
     assert isinstance(result.exception, CondtrackError) and "/proc/s.png" in str(result.exception)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "t.h5"]
+
+
+def _changed(overlay, k, frame) -> np.ndarray:
+    """(H, W) bool: pixels the overlay changed on frame ``k``."""
+    return np.abs(overlay.draw(k, frame).astype(int) - cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR).astype(int)).max(-1) > 0
+
+
+def _legend_bottom(changed: np.ndarray) -> int:
+    """The last row of the legend (its darkened boxes start at column 2)."""
+    return int(np.flatnonzero(changed[:, 2]).max())
+
+
+def test_overlay_points_keeps_the_points_that_move_most(frames_folder):
+    """Point 0 moves 10.5 px over the clip, point 2 3.5 px, points 1 and 3 not at all."""
+    tracks, raw = make_tracks(), raw_frames(frames_folder)
+    assert render.most_moving(tracks.xy, 2).tolist() == [True, False, True, False]
+    one = render.Overlay(tracks, trail=1, style=render.OverlayStyle(points=1))
+    changed = _changed(one, 4, raw[4])
+    assert changed[20, 26] and not changed[50, 38] and not changed[40, 70]  # point 0's dot; not 2's, not 1's X
+    assert one.methods == [2]  # the legend names clf alone: one row less than with every point
+    assert _legend_bottom(changed) < _legend_bottom(_changed(render.Overlay(tracks, trail=1), 4, raw[4]))
+
+
+def test_ellipses_all_visible_or_none(frames_folder):
+    tracks, raw = make_tracks(), raw_frames(frames_folder)
+    tracks.visible[3, 4] = False  # point 3 hidden on frame 4 with a finite covariance
+    ring = (15, 80 + 7)  # on point 3's ellipse, 7.3 px right of it
+    drawn = {mode: _changed(render.Overlay(tracks, style=render.OverlayStyle(ellipses=mode)), k, raw[k])
+             for mode in ("all", "visible", "none") for k in (2,)}
+    assert drawn["all"][ring] and drawn["visible"][ring] and not drawn["none"][ring]  # visible on frame 2
+    hidden = {mode: _changed(render.Overlay(tracks, style=render.OverlayStyle(ellipses=mode)), 4, raw[4])
+              for mode in ("all", "visible")}
+    assert hidden["all"][ring] and not hidden["visible"][ring] and hidden["visible"][15, 80]  # the X stays
+    with pytest.raises(ValueError, match="ellipses must be"):
+        render.Overlay(tracks, style=render.OverlayStyle(ellipses="some"))
+
+
+def test_an_ellipse_over_the_cap_is_a_diamond_named_in_the_legend(frames_folder):
+    tracks, raw = make_tracks(), raw_frames(frames_folder)
+    """Point 3's ellipse is 7.3 x 2.4 px (semi-axes) around (80.25, 15.5); the diamond reaches 6 px each way."""
+    drawn = _changed(render.Overlay(tracks), 2, raw[2])
+    capped = _changed(render.Overlay(tracks, style=render.OverlayStyle(ellipse_cap=5.0)), 2, raw[2])
+    assert drawn[15, 72] and not drawn[10, 80]  # the ellipse's left end; nothing 5.5 px above the point
+    assert capped[10, 80] and not capped[15, 72]  # the diamond's top corner; no ellipse
+    assert _legend_bottom(capped) > _legend_bottom(drawn)  # the legend says what the diamond means
+    tracks.cov[0] = [[1e4, 0.0], [0.0, 1e4]]  # point 0: a 245 px ellipse, over half the frame's diagonal
+    huge = _changed(render.Overlay(tracks), 2, np.full((200, 300), 128, np.uint8))  # cap: 180 px
+    assert huge[14, 23] and not huge[80:].any()  # its diamond; no outline, no legend below row 80
+
+
+def test_overlay_options_on_track_and_render(frames_folder, tmp_path):
+    h5 = write_h5(tmp_path / "t.h5")
+    result = CliRunner().invoke(render_command, [
+        str(h5), str(frames_folder), "-o", str(tmp_path / "o.mp4"), "--overlay-points", "2", "--ellipses", "visible",
+        "--ellipse-cap", "20"])
+    assert result.exit_code == 0, result.output
+    capture = cv2.VideoCapture(str(tmp_path / "o.mp4"))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == N_FRAMES
+    capture.release()
+    overlay, sample = tmp_path / "t.mp4", SAMPLES / "occlusion"
+    result = CliRunner().invoke(cli, ["track", str(sample), "-p", str(sample / "queries.csv"), "-m", "stk", "-o",
+                                      str(tmp_path / "t.csv"), "--overlay", str(overlay), "--overlay-points", "3",
+                                      "--ellipses", "none", "-q"])
+    assert result.exit_code == 0, result.output
+    capture = cv2.VideoCapture(str(overlay))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 30
+    capture.release()
+    refused = CliRunner().invoke(cli, ["track", str(frames_folder), "-o", str(tmp_path / "r.csv"), "--ellipses", "none"])
+    assert "--ellipses: an overlay option (give --overlay OUT.mp4)" in str(refused.exception)
+    assert not (tmp_path / "r.csv").exists()
+    bad = CliRunner().invoke(render_command, [str(h5), str(frames_folder), "-o", str(tmp_path / "b.mp4"),
+                                              "--overlay-points", "0"])
+    assert bad.exit_code == 2 and "--overlay-points" in bad.output and not (tmp_path / "b.mp4").exists()

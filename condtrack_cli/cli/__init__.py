@@ -27,6 +27,8 @@ COMMANDS = {
     "render": ("render:render_command",
                "Draw the tracks of TRACKS (.h5 or .csv) on the frames of INPUT, the sequence they were tracked on."),
     "stages": ("stages:stages", "List the registered stages per kind (built-in and from entry points)."),
+    "status": ("status:status_command",
+               "Show what became of each input of the batch written into OUT_DIR (its manifest.jsonl)."),
     "synth": ("synth:synth", "Write a synthetic scene with exact ground truth: frames, queries.csv, tracks.csv, labels.csv."),
     "track": ("track:track", "Track points through INPUT, a folder of frames or a video file."),
 }

@@ -6,12 +6,13 @@ from pathlib import Path
 
 import click
 
+from condtrack_cli.cli.options import overlay_options, overlay_style
 from condtrack_cli.errors import CondtrackError
 
 
 @click.command("render")
 @click.argument("tracks_path", metavar="TRACKS", type=click.Path(dir_okay=False))
-@click.argument("input_path", metavar="INPUT")
+@click.argument("input_path", metavar="INPUT", type=click.Path(readable=False))  # a path, checked by the run
 @click.option("-o", "--output", "output_path", required=True, type=click.Path(dir_okay=False),
               help="Overlay video: OUT.mp4, .avi, .mov or .mkv (MPEG-4; a folder OUT/ of PNGs when no codec opens).")
 @click.option("--contact-sheet", "sheet_path", type=click.Path(dir_okay=False),
@@ -20,18 +21,21 @@ from condtrack_cli.errors import CondtrackError
               help="Positions joined by each point's trail (1: no trail).")
 @click.option("--sheet-frames", type=click.IntRange(min=1), default=6, show_default=True,
               help="Frames on the contact sheet, evenly spaced, first and last included.")
+@overlay_options
 def render_command(tracks_path: str, input_path: str, output_path: str, sheet_path: str | None,
-                   trail: int, sheet_frames: int) -> None:
+                   trail: int, sheet_frames: int, overlay_points: int | None, ellipses: str | None,
+                   ellipse_cap: float | None) -> None:
     """Draw the tracks of TRACKS (.h5 or .csv) on the frames of INPUT, the sequence they were tracked on.
 
     \b
     Per point, in the colour of its method (legend top-left):
       trail       its last --trail positions, darker with age
       ellipse     its 95% covariance ellipse (none when the covariance is
-                  undefined or infinite)
+                  undefined or infinite; a diamond when over --ellipse-cap)
       dot / X     filled dot when visible; hollow X when not visible or
                   when the covariance is infinite
       particles   CNLF particles as single pixels, when the file stores them
+    --overlay-points and --ellipses thin it out on a crowded clip.
     Positions are drawn as they are: x right, y down, origin at the centre of
     the top-left pixel (OpenCV's convention).
     """
@@ -40,6 +44,7 @@ def render_command(tracks_path: str, input_path: str, output_path: str, sheet_pa
     from condtrack_cli.io.atomic import check_writable, refuse_overwriting_inputs
     from condtrack_cli.render import check_video_path, render_contact_sheet, render_overlay
 
+    style = overlay_style(overlay_points, ellipses, ellipse_cap)
     tracks_file, output = Path(tracks_path), Path(output_path)
     sheet = Path(sheet_path) if sheet_path else None
     check_video_path(output)
@@ -52,7 +57,8 @@ def render_command(tracks_path: str, input_path: str, output_path: str, sheet_pa
     source = open_frames(FrameSettings(), input_path)
     tracks = matched_to_input(tracks, meta, tracks_file, source.info)
     with stored_particles(tracks_file, tracks) as particles:
-        written = render_overlay(tracks, source, output, source.info.fps, trail=trail, particles=particles)
+        written = render_overlay(tracks, source, output, source.info.fps, trail=trail, particles=particles, style=style)
         if sheet is not None:
-            render_contact_sheet(tracks, source, sheet, n=sheet_frames, trail=trail, particles=particles)
+            render_contact_sheet(tracks, source, sheet, n=sheet_frames, trail=trail, particles=particles,
+                                 style=style)
     click.echo(f"wrote {written}" + (f" and {sheet}" if sheet is not None else ""), err=True)

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
 import click
 
 from condtrack_cli import registry
+from condtrack_cli.cli.options import overlay_options, overlay_style
 from condtrack_cli.batch_command import batch_options, run_batch, single_run_threads
-from condtrack_cli.config import Config, check_method, load_config
+from condtrack_cli.config import Config, check_method, config_keys, load_config
 from condtrack_cli.errors import CondtrackError, read_error
 from condtrack_cli.io.atomic import refuse_overwriting_inputs
 from condtrack_cli.progress import Progress, show_warnings
@@ -34,24 +36,30 @@ class _MethodChoice(click.Choice):
         return value
 
 
+def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[str]:
+    """Shell completion of --set: the config keys that start with what is typed."""
+    return [key for key in config_keys() if key.startswith(incomplete)]
+
+
 @click.command("track")
-@click.argument("inputs", metavar="INPUT...", nargs=-1)
+@click.argument("inputs", metavar="INPUT...", nargs=-1, type=click.Path(readable=False))  # a path, checked by the run
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), help="YAML config (default: configs/default.yaml's values).")
 @click.option("-p", "--queries", "queries_path", type=click.Path(dir_okay=False), help="CSV of query points: frame,x,y[,point_id].")
 @click.option("-m", "--method", type=_MethodChoice(), help="Tracking method (overrides filter.method); see `condtrack stages`.")
 @click.option("-o", "--output", "output_path", type=click.Path(dir_okay=False), help="Output .h5/.hdf5 or .csv (default: CSV on stdout).")
 @click.option("--overlay", "overlay_path", type=click.Path(dir_okay=False), help="Also render an overlay video (.mp4) of the tracks.")
+@overlay_options
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of every random draw.")
 @click.option("--smooth", is_flag=True, help="Two-way smoothing: each frame's estimate also uses the later frames (filter.smooth).")
-@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override one config value, e.g. motion.levels=3 (repeatable).")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", shell_complete=_complete_key, help="Override one config value, e.g. motion.levels=3 (repeatable).")
 @click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
 @click.option("--out-dir", type=click.Path(file_okay=False), help="Batch: folder of the outputs (created if missing), one <input name>.<format> each, and manifest.jsonl.")
 @click.option("--format", "batch_format", type=click.Choice(["h5", "csv"]), default="h5", show_default=True, help="Batch: output format.")
 @click.option("-j", "--jobs", type=click.IntRange(min=1), help="Batch: inputs processed in parallel (default 1; not with --scheduler).")
 @batch_options
-@click.option("-q", "--quiet", is_flag=True, help="No progress or summary on stderr.")
-def track(inputs, config_path, queries_path, method, output_path, overlay_path, seed, smooth, overrides, list_path, out_dir,
-          batch_format, jobs, quiet, threads, **batch) -> None:
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar, summary or warnings on stderr.")
+def track(inputs, config_path, queries_path, method, output_path, overlay_path, overlay_points, ellipses, ellipse_cap,
+          seed, smooth, overrides, list_path, out_dir, batch_format, jobs, quiet, threads, **batch) -> None:
     """Track points through INPUT, a folder of frames or a video file.
 
     Several INPUTs (or --from-list) make a batch: one output per input in
@@ -62,6 +70,7 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     from condtrack_cli.run import track_input
 
     show_warnings(not quiet)
+    style = overlay_style(overlay_points, ellipses, ellipse_cap, overlay_path)
     inputs = list(inputs) + (_read_list(list_path) if list_path else [])
     if not inputs:
         raise CondtrackError("no INPUT given (a frame folder or a video file, or --from-list FILE)")
@@ -70,8 +79,8 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         single_run_threads(threads, {**batch, "jobs": jobs})
         refuse_overwriting_inputs({"-o": output_path, "--overlay": overlay_path},
                                   {"INPUT": inputs[0], "-p": queries_path, "-c": config_path})
-        progress = None if quiet else Progress
-        summary = track_input(inputs[0], config, queries_path, output_path, seed, progress, overlay_path)
+        with contextlib.nullcontext() if quiet else Progress() as progress:
+            summary = track_input(inputs[0], config, queries_path, output_path, seed, progress, overlay_path, style)
         if not quiet:
             click.echo(summary.line(config.method), err=True)
         return

@@ -14,7 +14,6 @@ labels and scene description, a README), skipped silently.
 
 from __future__ import annotations
 
-import logging
 import re
 from pathlib import Path
 from typing import Iterator, Literal
@@ -23,7 +22,7 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli.errors import CondtrackError, MissingInput
+from condtrack_cli.errors import CondtrackError, MissingInput, warn
 from condtrack_cli.registry import register
 from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import SequenceInfo
@@ -77,9 +76,7 @@ class FolderSource:
         if not images:
             raise CondtrackError(f"{folder}: no image files ({', '.join(IMAGE_EXTENSIONS)}) in the folder")
         if others:
-            logging.getLogger("condtrack").warning(
-                "%s: skipping %d non-image file(s), e.g. '%s'", folder, len(others), others[0]
-            )
+            warn(f"{folder}: skipping {len(others)} non-image file(s), e.g. '{others[0]}'")
         self.paths = [folder / n for n in images]
         first = self.read(0)
         self.info = SequenceInfo(str(folder), first.shape[1], first.shape[0], len(self.paths), 0.0)

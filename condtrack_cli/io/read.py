@@ -12,14 +12,13 @@ only by the functions that open an HDF5 file (start-up time, issue 13).
 from __future__ import annotations
 
 import contextlib
-import logging
 from pathlib import Path
 from typing import Any, Iterator
 
 import numpy as np
 
 from condtrack_cli import SCHEMA_VERSION
-from condtrack_cli.errors import CondtrackError, MissingInput, plain
+from condtrack_cli.errors import CondtrackError, MissingInput, plain, warn
 from condtrack_cli.io.formats import is_hdf5, track_format
 from condtrack_cli.io.write import CSV_COLUMNS
 from condtrack_cli.registry import BUILTIN_METHOD_CODES, method_codes
@@ -183,8 +182,8 @@ def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, in
     """``tracks`` checked against the input; a CSV's tracks (which end at their last row) padded to its length.
 
     An HDF5 file of another frame size or count is refused. A CSV holds neither:
-    it is refused when it has rows past the input's end, and gets a warning (logger
-    ``condtrack``) when it ends before it or has visible positions outside its frame.
+    it is refused when it has rows past the input's end, and gets a warning
+    (:class:`CondtrackWarning`) when it ends before it or has visible positions outside its frame.
     """
     ours = f"{info.input} has {info.width}x{info.height} px, {info.n_frames} frames"
     if "width" in meta:
@@ -197,15 +196,13 @@ def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, in
     extra = info.n_frames - tracks.xy.shape[1]
     if extra < 0:
         raise CondtrackError(f"{tracks_path} has rows up to frame {tracks.xy.shape[1] - 1}, but {ours}")
-    warn = logging.getLogger("condtrack").warning
     if extra:
-        warn("%s has rows up to frame %d, but %s: was it tracked on another input?", tracks_path,
-             tracks.xy.shape[1] - 1, ours)
+        warn(f"{tracks_path} has rows up to frame {tracks.xy.shape[1] - 1}, but {ours}: was it tracked on another input?")
     x, y = tracks.xy[..., 0][tracks.visible], tracks.xy[..., 1][tracks.visible]
     outside = int(((x < -0.5) | (x > info.width - 0.5) | (y < -0.5) | (y > info.height - 0.5)).sum())
     if outside:
-        warn("%s has %d visible position(s) outside the %dx%d frame of %s: was it tracked on another input?",
-             tracks_path, outside, info.width, info.height, info.input)
+        warn(f"{tracks_path} has {outside} visible position(s) outside the {info.width}x{info.height} frame of "
+             f"{info.input}: was it tracked on another input?")
 
     def pad(array: np.ndarray, fill: Any) -> np.ndarray:
         return np.concatenate([array, np.full((len(array), extra) + array.shape[2:], fill, array.dtype)], axis=1)

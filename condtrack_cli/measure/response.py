@@ -1,20 +1,64 @@
 """R_k from the residuals on the support W(z_k): paper eqs. (8)-(10), the uniform test and the one-peak test.
 
 The noise model, the choice of c in eq. (8) and the floor of R_k are explained in
-:mod:`condtrack_cli.measure.ssd`.
+:mod:`condtrack_cli.measure.ssd`. ``SSDSettings``, the stage's settings, live here, the
+lower of the two modules, so that ssd.py imports this one and not the reverse.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Literal
 
 import numpy as np
+from pydantic import Field, ValidationInfo, field_validator
 from scipy import special
 
 from condtrack_cli.measure.noise import noise_threshold
+from condtrack_cli.settings import StageSettings
 
-if TYPE_CHECKING:
-    from condtrack_cli.measure.ssd import SSDSettings
+
+class SSDSettings(StageSettings):
+    """Settings of the SSD measurement (paper §5.2)."""
+
+    frame_windows = ("template",)
+
+    template: int = Field(11, ge=3, le=63, description="side t of the reference patch (px, odd)")
+    support: int = Field(7, ge=3, le=15, description="side n of the support W(z_k) of the response D_k (px, odd)")
+    gamma: float = Field(9.21, gt=0, description="gate nu^T S^-1 nu <= gamma (9.21: chi-square, 2 dof, 99%)")
+    search_min: int = Field(2, ge=1, le=32, description="least search half-size (px); the gate holds this square")
+    search_max: int = Field(16, ge=1, le=32, description="largest search half-size (px)")
+    noise_sigma: float | None = Field(
+        None, gt=0, description="acquisition noise std (grey levels); null: estimated on the images (Immerkær)"
+    )
+    equalise_alpha: float | None = Field(
+        0.05, gt=0, lt=1, description="level of the eq. (10) test; residuals within the noise are equalised (null: off)"
+    )
+    uniform_alpha: float = Field(0.05, gt=0, lt=1, description="level of the chi-square test of D_k against uniform")
+    c_rule: Literal["unit_sum", "likelihood"] = Field(
+        "unit_sum", description="c of eq. (8): unit_sum (paper: sum_W exp(-c r) = 1) or likelihood (1/(4 sigma^2))"
+    )
+    ambiguity_ratio: float = Field(
+        0.5, gt=0, lt=1, description="a second minimum with at least this fraction of the peak's response: R infinite"
+    )
+    cost: Literal["ssd", "zero_mean", "normalised"] = Field(
+        "zero_mean",
+        description="matching cost: ssd (eq. 6), zero_mean or normalised (SSD after matching the patch's mean, and contrast)",
+    )
+    r_floor: float = Field(1 / 12, gt=0, description="variance added to R_k on each axis (px^2): a grid cell's spread")
+
+    @field_validator("template", "support")
+    @classmethod
+    def _odd(cls, value: int) -> int:
+        if value % 2 == 0:
+            raise ValueError("must be odd")
+        return value
+
+    @field_validator("search_max")
+    @classmethod
+    def _ordered(cls, value: int, info: ValidationInfo) -> int:
+        if value < info.data.get("search_min", 0):
+            raise ValueError("must be at least search_min")
+        return value
 
 
 def within_2px(cells: np.ndarray) -> np.ndarray:

@@ -56,64 +56,16 @@ symmetric with both eigenvalues >= r_floor: never singular, never negative.
 
 from __future__ import annotations
 
-from typing import Literal
-
 import numpy as np
-from pydantic import Field, ValidationInfo, field_validator
 
 from condtrack_cli.measure.interface import Measurement
 from condtrack_cli.measure.noise import estimate_noise_sigma, noise_threshold
-from condtrack_cli.measure.response import infinite_covariance, response
+from condtrack_cli.measure.response import SSDSettings, infinite_covariance, response
 from condtrack_cli.measure.surfaces import FrameSums, extract_templates, frame_sums, matching_cost, refine, ssd_surfaces
 from condtrack_cli.registry import register
-from condtrack_cli.settings import StageSettings
 
 #: Most points per group of the search: bounds the (P, G, G) temporaries (about 100 kB per point at the largest gate).
 _CHUNK = 512
-
-
-class SSDSettings(StageSettings):
-    """Settings of the SSD measurement (paper §5.2)."""
-
-    frame_windows = ("template",)
-
-    template: int = Field(11, ge=3, le=63, description="side t of the reference patch (px, odd)")
-    support: int = Field(7, ge=3, le=15, description="side n of the support W(z_k) of the response D_k (px, odd)")
-    gamma: float = Field(9.21, gt=0, description="gate nu^T S^-1 nu <= gamma (9.21: chi-square, 2 dof, 99%)")
-    search_min: int = Field(2, ge=1, le=32, description="least search half-size (px); the gate holds this square")
-    search_max: int = Field(16, ge=1, le=32, description="largest search half-size (px)")
-    noise_sigma: float | None = Field(
-        None, gt=0, description="acquisition noise std (grey levels); null: estimated on the images (Immerkær)"
-    )
-    equalise_alpha: float | None = Field(
-        0.05, gt=0, lt=1, description="level of the eq. (10) test; residuals within the noise are equalised (null: off)"
-    )
-    uniform_alpha: float = Field(0.05, gt=0, lt=1, description="level of the chi-square test of D_k against uniform")
-    c_rule: Literal["unit_sum", "likelihood"] = Field(
-        "unit_sum", description="c of eq. (8): unit_sum (paper: sum_W exp(-c r) = 1) or likelihood (1/(4 sigma^2))"
-    )
-    ambiguity_ratio: float = Field(
-        0.5, gt=0, lt=1, description="a second minimum with at least this fraction of the peak's response: R infinite"
-    )
-    cost: Literal["ssd", "zero_mean", "normalised"] = Field(
-        "zero_mean",
-        description="matching cost: ssd (eq. 6), zero_mean or normalised (SSD after matching the patch's mean, and contrast)",
-    )
-    r_floor: float = Field(1 / 12, gt=0, description="variance added to R_k on each axis (px^2): a grid cell's spread")
-
-    @field_validator("template", "support")
-    @classmethod
-    def _odd(cls, value: int) -> int:
-        if value % 2 == 0:
-            raise ValueError("must be odd")
-        return value
-
-    @field_validator("search_max")
-    @classmethod
-    def _ordered(cls, value: int, info: ValidationInfo) -> int:
-        if value < info.data.get("search_min", 0):
-            raise ValueError("must be at least search_min")
-        return value
 
 
 def _half_sizes(gate_cov: np.ndarray, settings: SSDSettings) -> np.ndarray:

@@ -106,7 +106,7 @@ import numpy as np
 
 from condtrack_cli.motion.field import LocalField
 from condtrack_cli.motion.model import MotionFit, displacement, warp_maps
-from condtrack_cli.motion.pyramid import Pyramid, build_pyramid, frame_pyramid, usable_levels
+from condtrack_cli.motion.pyramid import build_pyramid, frame_pyramid, usable_levels
 from condtrack_cli.motion.robust import (
     MAD_TO_SIGMA,
     RobustMotionSettings,
@@ -114,7 +114,7 @@ from condtrack_cli.motion.robust import (
     estimate_from_pyramids,
     robust_weights,
 )
-from condtrack_cli.types import Frame
+from condtrack_cli.types import Frame, Pyramid
 
 #: Shortest side (px) of the coarsest level of the local pyramid.
 MIN_LOCAL_SIDE = 32

@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 
-from condtrack_cli.types import Frame
+from condtrack_cli.types import Frame, Pyramid
 
 
 #: Std (px) of the Gaussian smoothing both frames before estimation; see the module docstring.
@@ -17,19 +15,6 @@ PRESMOOTH_SIGMA = 1.0
 #: Smallest side (px) of the coarsest pyramid level: below it the level is too
 #: blurred to tell a textured object's motion from the background's.
 MIN_COARSE_SIDE = 64
-
-
-@dataclass(frozen=True)
-class Pyramid:
-    """A frame's Gaussian pyramid with its gradients.
-
-    base: (H, W) float32, the frame smoothed by a Gaussian of std PRESMOOTH_SIGMA
-    px (level 0). levels: finest first, (h_l, w_l, 3) float32 [I, dI/dx, dI/dy]
-    in grey levels and grey per pixel of that level (3x3 Sobel / 8).
-    """
-
-    base: np.ndarray
-    levels: list[np.ndarray]
 
 
 def build_pyramid(gray: np.ndarray, levels: int) -> Pyramid:

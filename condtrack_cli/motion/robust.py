@@ -63,9 +63,9 @@ from pydantic import Field
 
 from condtrack_cli.motion._blocks import block_displacements, block_hypotheses
 from condtrack_cli.motion.model import MotionFit, motion_basis, warp_maps
-from condtrack_cli.motion.pyramid import Pyramid, build_pyramid, frame_pyramid, usable_levels
+from condtrack_cli.motion.pyramid import build_pyramid, frame_pyramid, usable_levels
 from condtrack_cli.settings import StageSettings
-from condtrack_cli.types import Frame
+from condtrack_cli.types import Frame, Pyramid
 
 
 class RobustMotionSettings(StageSettings):

@@ -1,0 +1,47 @@
+"""``condtrack status OUT_DIR``: each input's latest record in a batch's manifest, the counts, and the redo command."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import click
+
+
+@click.command("status")
+@click.argument("out_dir", metavar="OUT_DIR", type=click.Path(exists=True, file_okay=False))
+@click.option("--json", "as_json", is_flag=True, help="Print the status as JSON (for scripts).")
+def status_command(out_dir: str, as_json: bool) -> None:
+    """Show what became of each input of the batch written into OUT_DIR (its manifest.jsonl).
+
+    Per input its latest record: ok, failed (with the reason), skipped, or
+    missing (recorded as done but its output is gone); then the counts, the
+    time taken and the command that redoes the failed and missing inputs.
+    The exit code is 1 when an input's latest record is failed.
+    """
+    from condtrack_cli.batch_status import batch_status
+
+    status = batch_status(out_dir)
+    if as_json:
+        click.echo(json.dumps(status.to_json(), indent=2))
+    else:
+        _print(status)
+    if status.counts["failed"]:
+        sys.exit(1)
+
+
+def _print(status) -> None:
+    width = max(len(item.input) for item in status.inputs)
+    for item in status.inputs:
+        detail = item.error if item.status == "failed" else item.output
+        if item.status == "missing":
+            detail += " is gone"
+        tries = f" ({item.attempts} attempts)" if item.attempts > 1 else ""
+        click.echo(f"{item.status:8s} {item.input:{width}s}  {detail}{tries}")
+    counts = ", ".join(f"{count} {name}" for name, count in status.counts.items() if count)
+    click.echo(f"{len(status.inputs)} inputs: {counts}; {status.seconds:.1f} s in their latest runs, "
+               f"{status.seconds_all_attempts:.1f} s in all")
+    if status.redo:
+        click.echo("redo the failed and missing inputs (from the folder the batch ran in):")
+        for line in status.redo + [f"# {note}" for note in status.notes]:
+            click.echo(f"  {line}")
