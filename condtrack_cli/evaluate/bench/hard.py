@@ -27,9 +27,10 @@ REPORT_SEEDS = (3, 4, 5, 6, 7)
 COLUMNS = ("lk", "clf", "cnlf", "auto")
 
 
-def _cell(metrics: dict | None) -> str:
+def _cell(result: tuple) -> str:
+    metrics, seconds = result
     if metrics is None:
-        return "failed"
+        return f"failed: {seconds}"
     return " / ".join(fmt(metrics.get(key)) for key in ("delta_avg", "AJ", "OA", "cov95"))
 
 
@@ -51,7 +52,7 @@ def hard_cases_table(work: Path, seeds: tuple[int, ...], extra: tuple[str, ...] 
             results = score_versus_lk(folder, folder / "queries.csv", truth, work, stem, extra)
             metrics = {column: results[column][0] for column in COLUMNS}
             lines.append(f"| {scene} | {seed} | {len(truth.point_id)} | "
-                         + " | ".join(_cell(metrics[c]) for c in COLUMNS) + " |")
+                         + " | ".join(_cell(results[c]) for c in COLUMNS) + " |")
             print(lines[-1], file=sys.stderr)
             delta = {c: np.nan if metrics[c] is None else metrics[c]["delta_avg"] for c in COLUMNS}
             better = max(delta["clf"], delta["cnlf"])
