@@ -77,7 +77,7 @@ def test_shards_cover_every_input_once():
     assert sorted(sum(parts, [])) == items and [len(p) for p in parts] == [4, 4, 3]
     assert parse_shard("2/3") == (2, 3)
     for bad in ("3/3", "-1/3", "1", "a/b", "0/0"):
-        with pytest.raises(CondtrackError, match="--shard"):
+        with pytest.raises(ValueError, match="expected I/N"):
             parse_shard(bad)
 
 
@@ -281,12 +281,14 @@ def test_skip_existing_redoes_another_input_with_the_same_output_name(tmp_path):
 
 
 def test_batch_only_options_are_refused_where_they_would_be_ignored(clips, tmp_path):
-    """Issue 28.9: -j with one input and no --out-dir, and -j with --scheduler, did nothing and said nothing."""
+    """Issue 28.9: -j with one input and no --out-dir, and -j with --scheduler, did nothing and said nothing; usage
+    errors (28.18)."""
+    usage = "Usage: condtrack track [OPTIONS] INPUT...\n"
     result = run_cli("track", clips[0], "-m", "stk", "-j", "2", "-o", str(tmp_path / "out.csv"))
-    assert result.returncode == 1 and result.stderr == "Error: --jobs: a batch option (give --out-dir)\n"
+    assert result.returncode == 2 and result.stderr == usage + "Error: --jobs: a batch option (give --out-dir)\n"
     result = run_cli("track", *clips[:2], "-m", "stk", "--out-dir", str(tmp_path / "d"), "-j", "2",
                      "--scheduler", "tcp://127.0.0.1:9")
-    assert result.returncode == 1 and result.stderr.startswith("Error: -j/--jobs: not with --scheduler")
+    assert result.returncode == 2 and result.stderr.startswith(usage + "Error: -j/--jobs: not with --scheduler")
     assert not (tmp_path / "out.csv").exists() and not (tmp_path / "d").exists()
 
 

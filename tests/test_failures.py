@@ -64,7 +64,6 @@ def test_input_failures(tmp_path):
         ("filter: {stk: {fb_threshold: -1}}\n", [], "'filter.stk.fb_threshold'"),
         ("", ["--set", "filter.stk.levels=0"], "'filter.stk.levels'"),
         ("", ["--set", "filter.stk.win_size=500"], "does not fit in the 320x240 frame"),
-        ("", ["-m", "nope"], "'filter.method': unknown method 'nope'"),
         # issue 28.6: PyYAML keeps the last of two equal keys silently
         ("motion:\n  levels: 3\n  levels: 2\n", [], "c.yaml', line 3: key 'levels' given twice"),
         ("filter: {stk: {win_size: 31, win_size: 15}}\n", [], "line 1: key 'win_size' given twice"),
@@ -146,9 +145,10 @@ def test_same_seed_same_bytes(tmp_path):
 
 
 def _one_error_line(result, code: int, message: str) -> None:
-    """Exit ``code``, stderr exactly one ``Error:`` line holding ``message`` (after warnings), no traceback."""
+    """Exit ``code``, stderr exactly one ``Error:`` line holding ``message`` (after warnings and, for a usage error,
+    Click's usage line), no traceback."""
     assert result.returncode == code, result.stderr
-    lines = [line for line in result.stderr.strip().splitlines() if not line.startswith("warning: ")]
+    lines = [line for line in result.stderr.strip().splitlines() if not line.startswith(("warning: ", "Usage: "))]
     assert len(lines) == 1 and lines[0].startswith("Error: ") and message in lines[0], result.stderr
 
 
@@ -261,3 +261,28 @@ def test_messages_show_values_plainly_and_name_an_input_once(tmp_path):
     tracks.write_text("point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method\n0,0,1.0,2.0,1,0,1,1,stk\n0,1,abc,2,1,0,1,1,stk\n")
     result = run_cli("info", str(tracks))
     assert result.stderr == f"Error: {tracks}: line 3, column 'x': 'abc' is not a number\n"
+
+
+@pytest.mark.parametrize("args, message", [
+    (["track"], "no INPUT given"),
+    (["track", "{clip}", "{clip2}", "--out-dir", "{tmp}/d", "--shard", "3/2"], "Invalid value for '--shard'"),
+    (["track", "{clip}", "{clip2}", "--out-dir", "{tmp}/d", "--shard", "0/0"], "Invalid value for '--shard'"),
+    (["track", "{clip}", "{clip2}", "--out-dir", "{tmp}/d", "--shard", "abc"], "Invalid value for '--shard'"),
+    (["track", "{clip}", "-m", "foo"], "Invalid value for '-m' / '--method': 'foo' is not one of"),
+    (["track", "{clip}", "--skip-existing"], "--skip-existing: a batch option (give --out-dir)"),
+    (["track", "{clip}", "--shard", "0/2"], "--shard: a batch option (give --out-dir)"),
+    (["track", "{clip}", "{clip2}"], "several inputs need --out-dir"),
+    (["track", "{clip}", "{clip2}", "-o", "{tmp}/o.csv"], "-o and --overlay take one input"),
+    (["track", "{clip}", "--out-dir", "{tmp}/d", "-o", "{tmp}/o.csv"], "-o and --overlay take one input"),
+    (["synth", "{tmp}/s", "--scene", "ring", "--size", "abc"], "Invalid value for '--size': expected WIDTHxHEIGHT"),
+    (["synth", "{tmp}/s", "--scene", "nosuch"], "Invalid value for '--scene': unknown scene 'nosuch'"),
+    (["synth", "{tmp}/s", "--scene", "ring", "--size", "100000x100000"], "too large (at most 4096 px each way)"),
+])
+def test_command_line_mistakes_are_usage_errors(tmp_path, args, message):
+    """Issue 28.18 (and the synth size bound of 28.11): exit 2 after Click's usage line, the filter.method key unnamed
+    (the user typed -m), nothing created."""
+    args = [a.format(clip=SAMPLE, clip2=SAMPLES / "ring", tmp=tmp_path) for a in args]
+    result = run_cli(*args)
+    _one_error_line(result, 2, message)
+    assert result.stderr.startswith(f"Usage: condtrack {args[0]} [OPTIONS]") and "filter.method" not in result.stderr
+    assert not list(tmp_path.iterdir())

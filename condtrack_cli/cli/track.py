@@ -8,11 +8,12 @@ from pathlib import Path
 import click
 
 from condtrack_cli import registry
-from condtrack_cli.batch_command import batch_options, run_batch, single_run_threads
-from condtrack_cli.config import Config, check_method, load_config
-from condtrack_cli.errors import CondtrackError, read_error
+from condtrack_cli.batch_command import batch_options, refuse_batch_options, requested_threads, run_batch
+from condtrack_cli.config import Config, load_config
+from condtrack_cli.errors import read_error
 from condtrack_cli.io.atomic import refuse_overwriting_inputs
 from condtrack_cli.progress import Progress, show_warnings
+from condtrack_cli.threads import use_threads
 
 
 class _MethodChoice(click.Choice):
@@ -28,10 +29,6 @@ class _MethodChoice(click.Choice):
     @choices.setter
     def choices(self, _value) -> None:
         """Click's constructor sets the choices; they are the registry's instead."""
-
-    def convert(self, value, param, ctx) -> str:
-        check_method(value)  # the same one-line error as filter.method in a YAML config
-        return value
 
 
 @click.command("track")
@@ -62,12 +59,20 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     from condtrack_cli.run import track_input
 
     show_warnings(not quiet)
+    usage = click.get_current_context()
     inputs = list(inputs) + (_read_list(list_path) if list_path else [])
     if not inputs:
-        raise CondtrackError("no INPUT given (a frame folder or a video file, or --from-list FILE)")
+        usage.fail("no INPUT given (a frame folder or a video file, or --from-list FILE)")
+    in_batch = len(inputs) > 1 or out_dir is not None
+    if in_batch and (output_path or overlay_path):
+        usage.fail("-o and --overlay take one input; a batch writes into --out-dir")
+    if in_batch and out_dir is None:
+        usage.fail("several inputs need --out-dir")
+    if not in_batch:
+        refuse_batch_options({**batch, "jobs": jobs})
     config: Config = load_config(config_path, list(overrides) + (["filter.smooth=true"] if smooth else []), method)
-    if len(inputs) == 1 and out_dir is None:
-        single_run_threads(threads, {**batch, "jobs": jobs})
+    if not in_batch:
+        use_threads(requested_threads(threads))
         refuse_overwriting_inputs({"-o": output_path, "--overlay": overlay_path},
                                   {"INPUT": inputs[0], "-p": queries_path, "-c": config_path})
         progress = None if quiet else Progress
@@ -75,10 +80,6 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         if not quiet:
             click.echo(summary.line(config.method), err=True)
         return
-    if output_path or overlay_path:
-        raise CondtrackError("-o and --overlay take one input; a batch writes into --out-dir")
-    if out_dir is None:
-        raise CondtrackError("several inputs need --out-dir")
     run_batch(inputs, config, queries_path, out_dir, batch_format, seed, jobs, quiet, threads=threads, **batch)
 
 
