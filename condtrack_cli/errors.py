@@ -3,6 +3,8 @@
 Imports no numpy: ``condtrack --help`` loads this module (tests/test_startup.py).
 """
 
+import errno
+
 
 class CondtrackError(Exception):
     """Bad input or configuration: the message names the file, key or frame.
@@ -24,6 +26,13 @@ class MissingInput(CondtrackError):
 def read_error(error: OSError | Exception, message: str) -> CondtrackError:
     """``message`` as :class:`MissingInput` when ``error`` says the file does not exist, else as CondtrackError."""
     return (MissingInput if isinstance(error, FileNotFoundError) else CondtrackError)(message)
+
+
+def write_error(path: object, error: OSError) -> CondtrackError:
+    """``<path>: no space left on device`` for a full disk, else ``<path>: cannot write (<reason>)``."""
+    if error.errno == errno.ENOSPC:
+        return CondtrackError(f"{path}: no space left on device")
+    return CondtrackError(f"{path}: cannot write ({error.strerror or error})")
 
 
 def plain(value: object) -> str:
