@@ -12,6 +12,7 @@ queries, config and seed::
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Mapping
@@ -19,9 +20,9 @@ from typing import Any, Mapping
 import numpy as np
 import yaml
 
-from condtrack_cli import pipeline, registry, types
+from condtrack_cli import MAX_SEED, pipeline, registry, types
 from condtrack_cli.config import Config, load_config, resolve
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain
 from condtrack_cli.io import read as io_read
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.interface import OutputSettings
@@ -90,6 +91,14 @@ class Tracks:
         write_tracks(self.result, path, self.info, self.attributes, settings)
 
 
+def check_seed(seed: Any) -> None:
+    """Refuse a seed that is not a whole number from 0 to ``MAX_SEED``, in the words of ``condtrack track --seed``."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise InvalidArgumentType(f"seed: {plain(seed)} is not a valid integer")
+    if not 0 <= seed <= MAX_SEED:
+        raise InvalidArgument(f"seed: {plain(seed)} is not in the range 0<=x<={MAX_SEED}")
+
+
 def track_sequence(
     input_path: str | Path, config: Config, queries: str | Path | np.ndarray | None = None, seed: int = 0,
     progress_factory=None,
@@ -102,11 +111,12 @@ def track_sequence(
     (detect on frame 0). ``progress_factory(forward_frames, backward_frames)`` returns a per-frame
     callback with ``close()`` (:class:`condtrack_cli.progress.Progress`); None tracks silently.
     """
+    check_seed(seed)
     given = queries
     frames_stage = config.stage("frames")
     source = registry.get("frames", frames_stage.name).factory(frames_stage.settings, str(input_path))
     info = source.info
-    config.check_fits_frame(info.width, info.height, detecting=queries is None)
+    config.check_fits_frame(info.width, info.height, detecting=queries is None, where=info.input)
     if queries is None or isinstance(queries, (str, Path)):
         queries = read_queries(queries, info) if queries is not None else None
     else:
@@ -133,8 +143,9 @@ def track(
     ``frame, x, y`` rows (point ids 0..N-1), or None to detect points on frame 0.
     method: a registered tracking method (overrides ``filter.method``).
     config: a YAML path or a nested mapping with the YAML's sections, validated
-    like ``condtrack track -c`` (same errors). progress: a progress display on stderr.
-    Raises :class:`condtrack_cli.errors.CondtrackError` on bad input.
+    like ``condtrack track -c`` (same errors). seed: 0 .. ``MAX_SEED``. progress: a progress display on stderr.
+    Raises :class:`condtrack_cli.CondtrackError` on bad input (a bad argument value or type: its subclasses
+    ``InvalidArgument``, a ValueError, and ``InvalidArgumentType``, a TypeError).
     """
     tracks, _ = track_sequence(source, load_config(config, [], method), queries, seed, Progress if progress else None)
     return tracks

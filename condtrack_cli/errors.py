@@ -23,6 +23,18 @@ class MissingInput(CondtrackError):
     exit_code = 2
 
 
+class InvalidArgument(CondtrackError, ValueError):
+    """A Python API argument with a wrong value (seed=-1); the message is the command line's for the same value."""
+
+    exit_code = 2
+
+
+class InvalidArgumentType(CondtrackError, TypeError):
+    """A Python API argument of a wrong type (seed=1.5, an array of strings)."""
+
+    exit_code = 2
+
+
 def read_error(error: OSError | Exception, message: str) -> CondtrackError:
     """``message`` as :class:`MissingInput` when ``error`` says the file does not exist, else as CondtrackError."""
     return (MissingInput if isinstance(error, FileNotFoundError) else CondtrackError)(message)

@@ -166,16 +166,20 @@ def test_synth_into_a_folder_that_cannot_be_written(tmp_path):
 
 
 
-def test_a_frame_smaller_than_every_window_is_refused_with_honest_advice(tmp_path):
-    """2x2 frames with a query: detect.block does not apply (no detection); the advice is not below a key's minimum."""
-    folder = _frames_folder(tmp_path, ((2, 2),) * 3)
+@pytest.mark.parametrize("size", [(1, 1), (2, 2), (2, 40)])
+@pytest.mark.parametrize("method", ["stk", "clf"])
+def test_a_frame_smaller_than_every_window_is_refused_as_too_small(tmp_path, size, method):
+    """Issue 28.11: a 1x1 frame was blamed on detect.block (or motion.local_window), which no value could fix."""
+    folder = _frames_folder(tmp_path, (size,) * 3)
     queries = tmp_path / "q.csv"
-    queries.write_text("frame,x,y\n0,0.5,0.5\n")
-    result = run_cli("track", str(folder), "-p", str(queries), "-m", "stk", "-o", str(tmp_path / "out.csv"))
-    _one_error_line(result, 1, "the 2x2 frame is smaller than the key's minimum of")
-    assert "detect.block" not in result.stderr and "at most" not in result.stderr
-    result = run_cli("track", str(folder), "-m", "stk", "-o", str(tmp_path / "out.csv"))
-    _one_error_line(result, 1, "'detect.block'")
+    queries.write_text("frame,x,y\n0,0,0\n")
+    for extra in ([], ["-p", str(queries)]):
+        result = run_cli("track", str(folder), *extra, "-m", method, "-o", str(tmp_path / "out.csv"))
+        _one_error_line(result, 1, f"{folder}: the {size[1]}x{size[0]} frame is too small for tracking (at least 3x3 px)")
+        assert "config key" not in result.stderr
+    (tmp_path / "five").mkdir()
+    result = run_cli("track", str(_frames_folder(tmp_path / "five", ((5, 5),) * 3)), "-m", method)
+    _one_error_line(result, 1, "config key 'detect.block': a window of 7 px does not fit in the 5x5 frame (at most 5)")
 
 
 @pytest.mark.parametrize("option, value", [("--atol-px", "nan"), ("--atol-px", "inf"), ("--rtol-cov", "inf"),
@@ -286,3 +290,19 @@ def test_command_line_mistakes_are_usage_errors(tmp_path, args, message):
     _one_error_line(result, 2, message)
     assert result.stderr.startswith(f"Usage: condtrack {args[0]} [OPTIONS]") and "filter.method" not in result.stderr
     assert not list(tmp_path.iterdir())
+
+
+def test_a_config_not_in_utf8_and_a_seed_beyond_64_bits_are_refused_before_work(tmp_path):
+    """Issue 28.11: a Latin-1 config was a UnicodeDecodeError traceback; --seed 2^64 failed only after the whole run,
+    when the HDF5 attribute was written."""
+    config = tmp_path / "c.yaml"
+    config.write_bytes("# réglages\nmotion: {levels: 3}\n".encode("latin-1"))
+    result = run_cli("track", str(SAMPLE), "-c", str(config), "-o", str(tmp_path / "out.h5"))
+    _one_error_line(result, 1, f"config file '{config}' is not UTF-8 text (byte 0xe9 at offset 3)")
+    config.unlink()
+    result = run_cli("track", str(SAMPLE), "-m", "stk", "--seed", str(2**64), "-o", str(tmp_path / "out.h5"))
+    _one_error_line(result, 2, f"Invalid value for '--seed': {2**64} is not in the range 0<=x<=9223372036854775807")
+    assert "frame" not in result.stderr  # refused before tracking: no progress line
+    assert not list(tmp_path.iterdir())
+    result = run_cli("track", str(SAMPLE), "-m", "stk", "--seed", str(2**63 - 1), "-o", str(tmp_path / "out.h5"))
+    assert result.returncode == 0, result.stderr

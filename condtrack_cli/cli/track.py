@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from condtrack_cli import registry
+from condtrack_cli import MAX_SEED, registry
 from condtrack_cli.batch_command import batch_options, refuse_batch_options, requested_threads, run_batch
 from condtrack_cli.config import Config, load_config
 from condtrack_cli.errors import read_error
@@ -38,7 +38,8 @@ class _MethodChoice(click.Choice):
 @click.option("-m", "--method", type=_MethodChoice(), help="Tracking method (overrides filter.method); see `condtrack stages`.")
 @click.option("-o", "--output", "output_path", type=click.Path(dir_okay=False), help="Output .h5/.hdf5 or .csv (default: CSV on stdout).")
 @click.option("--overlay", "overlay_path", type=click.Path(dir_okay=False), help="Also render an overlay video (.mp4) of the tracks.")
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of every random draw.")
+@click.option("--seed", type=click.IntRange(min=0, max=MAX_SEED), default=0, show_default=True,
+              help="Seed of every random draw.")
 @click.option("--smooth", is_flag=True, help="Two-way smoothing: each frame's estimate also uses the later frames (filter.smooth).")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", help="Override one config value, e.g. motion.levels=3 (repeatable).")
 @click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
