@@ -118,7 +118,7 @@ def run_batch(
     scheduler_file: str | None, threads: int | None,
 ) -> None:
     """Plan, run and report a batch; exit 1 when an input failed. ``jobs`` None: -j not given (one job at a time)."""
-    from condtrack_cli.batch import append_record, plan_batch, run_dask, run_local
+    from condtrack_cli.batch import append_record, connect_dask, interrupted_record, plan_batch, run_dask, run_local
 
     usage = click.get_current_context()
     if scheduler and scheduler_file:
@@ -134,23 +134,32 @@ def run_batch(
         per_job, warning = threads_per_job(requested, min(jobs, len(inputs)))
     if warning and not quiet:
         click.echo(f"warning: {warning}", err=True)
-    plan = plan_batch(inputs, config, queries_path, Path(out_dir), f".{batch_format}", seed, per_job,
-                      shard, skip_existing)
-    progress = ClipProgress(len(plan.jobs), quiet)
-    records: dict[str, ClipRecord] = {}
+    # The scheduler is reached before the out-dir is made: one that does not answer leaves nothing behind.
+    connection = connect_dask(scheduler, scheduler_file) if on_dask else contextlib.nullcontext()
+    with connection as client:
+        plan = plan_batch(inputs, config, queries_path, Path(out_dir), f".{batch_format}", seed, per_job, shard,
+                          skip_existing)
+        progress = ClipProgress(len(plan.jobs), quiet)
+        records: dict[str, ClipRecord] = {}
 
-    def finished(record: ClipRecord) -> None:
-        append_record(Path(out_dir), record)
-        records[record.input] = record
-        progress(record)
+        def finished(record: ClipRecord) -> None:
+            append_record(Path(out_dir), record)
+            records[record.input] = record
+            progress(record)
 
-    with sigterm_exits():
-        for record in plan.skipped:
-            finished(record)
-        if on_dask:
-            run_dask(plan.todo, scheduler, scheduler_file, finished)
-        else:
-            run_local(plan.todo, jobs, finished)
+        with sigterm_exits():
+            for record in plan.skipped:
+                finished(record)
+            try:
+                if on_dask:
+                    run_dask(plan.todo, client, finished)
+                else:
+                    run_local(plan.todo, jobs, finished)
+            except (KeyboardInterrupt, SystemExit):  # the manifest says what did not end
+                for job in plan.todo:
+                    if job.input not in records:
+                        append_record(Path(out_dir), interrupted_record(job))
+                raise
     ordered = [records[job.input] for job in plan.jobs]
     failed = sum(r.status == "failed" for r in ordered)
     if not quiet:

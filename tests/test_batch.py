@@ -310,3 +310,48 @@ def test_from_list_paths_are_relative_to_the_list_and_names_do_not_depend_on_the
         assert [r["status"] for r in manifest(out_dir)] == ["ok", "ok"]
         names.append(sorted(p.name for p in out_dir.glob("*.h5")))
     assert names == [["clip000_frames.h5", "clip001_frames.h5"]] * 2
+
+
+def test_a_scheduler_that_is_not_one_or_does_not_answer_fails_fast_and_leaves_nothing(clips, tmp_path):
+    """Issues 28.11 and 28.16: a scheduler file that is not one was an AssertionError; an unreachable scheduler took
+    60 s and left an empty out-dir."""
+    pytest.importorskip("distributed")
+    not_json, no_address = tmp_path / "notes.txt", tmp_path / "other.json"
+    not_json.write_text("hello\n")
+    no_address.write_text('{"a": 1}\n')
+    out_dir = tmp_path / "out"
+    for path in (not_json, no_address):
+        result = run_cli("track", *clips[:2], "--out-dir", str(out_dir), "--scheduler-file", str(path))
+        assert result.returncode == 1 and result.stderr == (
+            f"Error: --scheduler-file {path}: not a Dask scheduler file (a JSON object with the scheduler's 'address')\n")
+    started = time.monotonic()
+    result = run_cli("track", *clips[:2], "--out-dir", str(out_dir), "--scheduler", "tcp://127.0.0.1:9")
+    assert time.monotonic() - started < 10
+    assert result.returncode == 1 and result.stderr.startswith("Error: cannot reach the Dask scheduler tcp://127.0.0.1:9")
+    assert result.stderr.count("\n") == 1 and not out_dir.exists()
+
+
+def test_a_dask_batch_stops_promptly_on_sigterm_and_writes_its_manifest(tmp_path):
+    """Issue 28.16: the cluster's running tasks went on writing outputs seconds after the batch exited, and the
+    inputs that had not ended were not in the manifest."""
+    distributed = pytest.importorskip("distributed")
+    clips = make_clips(tmp_path / "data", 4, n_frames=[3] + [60] * 3)
+    out_dir = tmp_path / "tracks"
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, protocol="tcp",
+                                  dashboard_address=":0") as cluster:
+        process = subprocess.Popen(
+            [sys.executable, "-c", "from condtrack_cli.cli import main; main()", "track", *clips, "-m", "cnlf",
+             "--out-dir", str(out_dir), "--scheduler", cluster.scheduler_address],
+            preexec_fn=default_sigint, stderr=subprocess.PIPE, text=True)
+        for line in process.stderr:  # until the first input is reported done
+            if "[1/" in line:
+                break
+        process.send_signal(signal.SIGTERM)
+        signalled = time.monotonic()
+        _, stderr = process.communicate(timeout=60)
+        assert time.monotonic() - signalled < 5 and process.returncode == 143, stderr
+        time.sleep(2.0)  # a task left running would publish its output meanwhile
+    assert [p.name for p in out_dir.glob("*.h5")] == ["clip000_frames.h5"]
+    assert [(r["input"], r["status"]) for r in manifest(out_dir)] == [
+        (clips[0], "ok"), *[(clip, "interrupted") for clip in clips[1:]]]
+    assert "Traceback" not in stderr
