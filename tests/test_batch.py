@@ -355,3 +355,13 @@ def test_a_dask_batch_stops_promptly_on_sigterm_and_writes_its_manifest(tmp_path
     assert [(r["input"], r["status"]) for r in manifest(out_dir)] == [
         (clips[0], "ok"), *[(clip, "interrupted") for clip in clips[1:]]]
     assert "Traceback" not in stderr
+
+
+def test_more_threads_than_cores_are_capped_with_a_warning(clips, tmp_path):
+    """Issue 28.14: --threads 100000 (or CONDTRACK_THREADS) was taken as asked, a thread storm."""
+    result = run_cli("track", clips[0], "-m", "stk", "--threads", "100000", "-o", str(tmp_path / "o.csv"), affinity={0})
+    assert result.returncode == 0 and "warning: 100000 threads exceeds the 1 core: using 1 thread\n" in result.stderr
+    result = run_cli("track", clips[0], "-m", "stk", "--out-dir", str(tmp_path / "d"), affinity={0},
+                     env={**os.environ, "CONDTRACK_THREADS": "100000"})
+    assert result.returncode == 0 and "warning: 100000 threads exceeds the 1 core: using 1 thread\n" in result.stderr
+    assert manifest(tmp_path / "d")[0]["threads"] == {"opencv": 1, "fft": 1, "omp": ""}

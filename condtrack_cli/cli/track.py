@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -13,7 +14,7 @@ from condtrack_cli.config import Config, load_config
 from condtrack_cli.errors import read_error
 from condtrack_cli.io.atomic import refuse_overwriting_inputs
 from condtrack_cli.progress import Progress, show_warnings
-from condtrack_cli.threads import use_threads
+from condtrack_cli.threads import threads_per_job, use_threads
 
 
 class _MethodChoice(click.Choice):
@@ -73,7 +74,10 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         refuse_batch_options({**batch, "jobs": jobs})
     config: Config = load_config(config_path, list(overrides) + (["filter.smooth=true"] if smooth else []), method)
     if not in_batch:
-        use_threads(requested_threads(threads))
+        threads, warning = threads_per_job(requested_threads(threads), 1)
+        if warning:
+            logging.getLogger("condtrack").warning(warning)
+        use_threads(threads)
         refuse_overwriting_inputs({"-o": output_path, "--overlay": overlay_path},
                                   {"INPUT": inputs[0], "-p": queries_path, "-c": config_path})
         progress = None if quiet else Progress
