@@ -306,3 +306,30 @@ def test_a_config_not_in_utf8_and_a_seed_beyond_64_bits_are_refused_before_work(
     assert not list(tmp_path.iterdir())
     result = run_cli("track", str(SAMPLE), "-m", "stk", "--seed", str(2**63 - 1), "-o", str(tmp_path / "out.h5"))
     assert result.returncode == 0, result.stderr
+
+
+def test_a_track_csv_with_a_huge_frame_number_is_refused_within_a_small_memory(tmp_path):
+    """Issue 28.13: two rows, one on frame 100000000, made info allocate 9.5 GiB (dense (P, F) arrays)."""
+    import tracemalloc
+
+    from condtrack_cli.errors import CondtrackError
+    from condtrack_cli.evaluate.groundtruth import load_gt_csv
+    from condtrack_cli.io.read import read_tracks
+
+    tracks, truth = tmp_path / "t.csv", tmp_path / "gt.csv"
+    tracks.write_text("point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method\n"
+                      "0,0,1.0,2.0,1,0,1,1,clf\n0,100000000,1.0,2.0,1,0,1,1,clf\n")
+    truth.write_text("point_id,frame,x,y,visible\n0,0,1,2,1\n1,100000000,1,2,1\n")
+    for read, path in ((read_tracks, tracks), (load_gt_csv, truth)):
+        tracemalloc.start()
+        try:
+            with pytest.raises(CondtrackError, match=r"line 3 has frame 100000000, but the file has 2 rows for "):
+                read(path)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 2**25, peak  # 32 MiB; the dense arrays took 9.5 GiB
+    result = run_cli("info", str(tracks))
+    _one_error_line(result, 1, f"{tracks}: line 3 has frame 100000000, but the file has 2 rows for 1 points")
+    result = run_cli("eval", str(SAMPLE / "tracks.csv"), str(truth))
+    _one_error_line(result, 1, f"{truth}: line 3 has frame 100000000")

@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from condtrack_cli.errors import CondtrackError, read_error
-from condtrack_cli.io.read import number_column, repeated_rows
+from condtrack_cli.io.read import number_column, refuse_sparse, repeated_rows
 from condtrack_cli.types import Tracks
 
 #: Columns a ground-truth CSV must have.
@@ -143,6 +143,7 @@ def load_gt_csv(path: str | Path) -> GroundTruth:
 
     point_id, point_index = np.unique(pid.astype(np.int64), return_inverse=True)
     frame = frame.astype(np.int64)
+    refuse_sparse(path, frame, lines, len(point_id))
     n_points, n_frames = len(point_id), int(frame.max()) + 1
     _refuse_rows(repeated_rows(point_index, frame), lines, path, "a second row for the same point_id and frame")
 
