@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import os
 import signal
 import subprocess
 import sys
@@ -333,3 +334,20 @@ def test_a_track_csv_with_a_huge_frame_number_is_refused_within_a_small_memory(t
     _one_error_line(result, 1, f"{tracks}: line 3 has frame 100000000, but the file has 2 rows for 1 points")
     result = run_cli("eval", str(SAMPLE / "tracks.csv"), str(truth))
     _one_error_line(result, 1, f"{truth}: line 3 has frame 100000000")
+
+
+def test_a_named_pipe_input_is_refused_at_once(tmp_path):
+    """Issue 28.15: OpenCV's open blocked on a FIFO, deaf to Ctrl-C and SIGTERM; the run must end by itself."""
+    fifo = tmp_path / "clip.mp4"
+    os.mkfifo(fifo)
+    process = subprocess.Popen([sys.executable, "-c", "from condtrack_cli.cli import main; main()", "track", str(fifo),
+                                "-o", str(tmp_path / "out.csv")], stderr=subprocess.PIPE, text=True)
+    try:
+        _, stderr = process.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.communicate()
+        pytest.fail("the run hung on the named pipe")
+    assert process.returncode == 1 and stderr == (
+        f"Error: {fifo}: not a regular file (a named pipe); give a video file or a folder of frames\n")
+    assert [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]
