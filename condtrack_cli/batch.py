@@ -39,6 +39,7 @@ from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError, read_error
 from condtrack_cli.hashes import config_hash, input_fingerprint, queries_hash
 from condtrack_cli.interrupts import held_signals
+from condtrack_cli.io.atomic import refuse_overwriting_inputs
 from condtrack_cli.progress import show_warnings
 from condtrack_cli.run import track_input
 from condtrack_cli.threads import blas_environment, threads_in_use, use_threads
@@ -390,8 +391,11 @@ def plan_batch(
     inputs: list[str], config: Config, queries_path: str | None, out_dir: Path, suffix: str, seed: int,
     threads: int | None, shard_spec: tuple[int, int] | None = None, skip_existing: bool = False,
 ) -> BatchPlan:
-    """Name every input's output, create ``out_dir``, keep this shard, and find what ``skip_existing`` skips."""
+    """Name every input's output, refuse one that is the queries file, create ``out_dir``, keep this shard, and find
+    what ``skip_existing`` skips."""
     names = output_names(inputs)
+    refuse_overwriting_inputs({f"the output of '{i}',": out_dir / f"{n}{suffix}" for i, n in zip(inputs, names)},
+                              {"-p": queries_path})
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as error:

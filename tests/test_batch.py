@@ -365,3 +365,21 @@ def test_more_threads_than_cores_are_capped_with_a_warning(clips, tmp_path):
                      env={**os.environ, "CONDTRACK_THREADS": "100000"})
     assert result.returncode == 0 and "warning: 100000 threads exceeds the 1 core: using 1 thread\n" in result.stderr
     assert manifest(tmp_path / "d")[0]["threads"] == {"opencv": 1, "fft": 1, "omp": ""}
+
+
+def test_a_batch_output_that_is_the_queries_file_is_refused_before_work(clips, tmp_path):
+    """Issue 28.5's batch side: an input named 'queries' wrote OUT_DIR/queries.csv over the -p file."""
+    import shutil
+
+    clip = tmp_path / "queries"
+    shutil.copytree(clips[0], clip)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    queries = out_dir / "queries.csv"
+    queries.write_text("frame,x,y\n0,40,30\n")
+    result = run_cli("track", str(clip), clips[1], "-p", str(queries), "-m", "stk", "--out-dir", str(out_dir),
+                     "--format", "csv")
+    assert result.returncode == 1 and result.stderr == (
+        f"Error: the output of '{clip}', {queries}: the same file as the input -p {queries}; "
+        "writing it would destroy the input\n")
+    assert queries.read_text() == "frame,x,y\n0,40,30\n" and [p.name for p in out_dir.iterdir()] == ["queries.csv"]
