@@ -9,6 +9,9 @@ from condtrack_cli.errors import CondtrackError, CondtrackWarning
 
 __version__ = "0.1.0"
 
+#: Largest seed (``--seed``, ``ct.track(seed=...)``): the HDF5 file stores it as a signed 64-bit integer.
+MAX_SEED = 2**63 - 1
+
 #: Version of the output schema (CSV columns, HDF5 layout); see docs/schema.md.
 SCHEMA_VERSION = "1.0"
 

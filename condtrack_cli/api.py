@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import itertools
+import numbers
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -21,9 +22,9 @@ from typing import Any, Callable, Mapping
 import numpy as np
 import yaml
 
-from condtrack_cli import pipeline, registry, types
+from condtrack_cli import MAX_SEED, pipeline, registry, types
 from condtrack_cli.config import Config, load_config, resolve
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain
 from condtrack_cli.io import read as io_read
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.interface import OutputSettings
@@ -119,6 +120,14 @@ class Tracks:
         write_tracks(self.result, path, self.info, self.attributes, settings)
 
 
+def check_seed(seed: Any) -> None:
+    """Refuse a seed that is not a whole number from 0 to ``MAX_SEED``, in the words of ``condtrack track --seed``."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral):
+        raise InvalidArgumentType(f"seed: {plain(seed)} is not a valid integer")
+    if not 0 <= seed <= MAX_SEED:
+        raise InvalidArgument(f"seed: {plain(seed)} is not in the range 0<=x<={MAX_SEED}")
+
+
 def track_sequence(
     input_path: str | Path, config: Config, queries: str | Path | np.ndarray | None = None, seed: int = 0,
     progress: Callable[[int, int], None] | None = None,
@@ -131,11 +140,12 @@ def track_sequence(
     (detect on frame 0). ``progress(done, total)`` is called after each frame the run reads: ``total``
     counts the forward pass's frames and the backward pass's (the frames up to the last query frame).
     """
+    check_seed(seed)
     given = queries
     frames_stage = config.stage("frames")
     source = registry.get("frames", frames_stage.name).factory(frames_stage.settings, str(input_path))
     info = source.info
-    config.check_fits_frame(info.width, info.height, detecting=queries is None)
+    config.check_fits_frame(info.width, info.height, detecting=queries is None, where=info.input)
     if queries is None or isinstance(queries, (str, Path)):
         queries = read_queries(queries, info) if queries is not None else None
     else:
@@ -165,11 +175,12 @@ def track(
     ``frame, x, y`` rows (point ids 0..N-1), or None to detect points on frame 0.
     method: a registered tracking method (overrides ``filter.method``).
     config: a YAML path or a nested mapping with the YAML's sections, validated
-    like ``condtrack track -c`` (same errors). progress: True for the command line's
+    like ``condtrack track -c`` (same errors). seed: 0 .. ``MAX_SEED``. progress: True for the command line's
     progress bar (on a terminal), or a callable ``progress(done, total)`` called after
     each frame read (``total``: the forward pass's frames plus the backward pass's).
-    Raises :class:`condtrack_cli.errors.CondtrackError` on bad input; what the command
-    line prints as ``warning:`` lines are :class:`condtrack_cli.errors.CondtrackWarning` warnings.
+    Raises :class:`condtrack_cli.CondtrackError` on bad input (a bad argument value or type: its subclasses
+    ``InvalidArgument``, a ValueError, and ``InvalidArgumentType``, a TypeError); what the command
+    line prints as ``warning:`` lines are :class:`condtrack_cli.CondtrackWarning` warnings.
 
     >>> import condtrack_cli as ct
     >>> done = []
@@ -178,7 +189,7 @@ def track(
     ((209, 30, 2), (1, 30), (30, 30))
     """
     if not (isinstance(progress, bool) or callable(progress)):
-        raise CondtrackError(f"progress: expected True, False or a callable(done, total), got {type(progress).__name__}")
+        raise InvalidArgumentType(f"progress: expected True, False or a callable(done, total), got {type(progress).__name__}")
     with Progress() if progress is True else contextlib.nullcontext(progress or None) as callback:
         tracks, _ = track_sequence(source, load_config(config, [], method), queries, seed, callback)
     return tracks

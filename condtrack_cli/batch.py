@@ -27,15 +27,18 @@ import multiprocessing
 import os
 import signal
 import time
+import uuid
 from collections import defaultdict
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Callable
 
 from condtrack_cli import __version__
 from condtrack_cli.config import Config
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, read_error
 from condtrack_cli.hashes import config_hash, input_fingerprint, queries_hash
+from condtrack_cli.interrupts import held_signals
+from condtrack_cli.io.atomic import refuse_overwriting_inputs
 from condtrack_cli.progress import show_warnings, warnings_shown
 from condtrack_cli.run import track_input
 from condtrack_cli.threads import blas_environment, threads_in_use, use_threads
@@ -44,6 +47,12 @@ MANIFEST = "manifest.jsonl"
 
 #: Exit status of a process stopped by SIGTERM (128 + 15), the shells' convention.
 SIGTERM_EXIT = 143
+
+#: Seconds to wait for a Dask scheduler to answer.
+CONNECT_SECONDS = 3
+
+#: Seconds between two looks of a running Dask task at its batch's stop Event.
+STOP_CHECK_SECONDS = 0.2
 
 
 @dataclass(frozen=True)
@@ -57,6 +66,7 @@ class BatchJob:
     seed: int
     threads: int | None  #: threads of this job (None: every core the process may use)
     input_fingerprint: str = ""  #: ``hashes.input_fingerprint`` of the input when the batch was planned
+    stop_event: str | None = None  #: on Dask: the name of the batch's stop Event, checked while the job runs
 
 
 @dataclass(frozen=True)
@@ -65,7 +75,7 @@ class ClipRecord:
 
     input: str
     output: str
-    status: str  #: "ok", "failed" or "skipped"
+    status: str  #: "ok", "failed", "skipped" or "interrupted" (the batch was stopped before the input ended)
     error: str | None
     seconds: float
     frames: int | None
@@ -129,10 +139,10 @@ def output_names(inputs: list[str]) -> list[str]:
 
 
 def parse_shard(text: str) -> tuple[int, int]:
-    """``"I/N"`` -> (I, N) with 0 <= I < N; CondtrackError otherwise."""
+    """``"I/N"`` -> (I, N) with 0 <= I < N; ValueError otherwise."""
     index, sep, count = text.partition("/")
     if not (sep and index.strip().isdigit() and count.strip().isdigit()) or not 0 <= int(index) < int(count):
-        raise CondtrackError(f"--shard: expected I/N with 0 <= I < N (e.g. 0/4), got {text!r}")
+        raise ValueError(f"expected I/N with 0 <= I < N (e.g. 0/4), got {text!r}")
     return int(index), int(count)
 
 
@@ -203,12 +213,41 @@ def skipped_record(job: BatchJob, manifest: list[dict]) -> ClipRecord | None:
                    queries_hash=wanted["queries_hash"])
 
 
+def interrupted_record(job: BatchJob) -> ClipRecord:
+    """The manifest record of a job that the batch's interrupt stopped (or never started)."""
+    return _record(job, "interrupted", error="interrupted", seconds=0.0, frames=None, points=None, queries_hash="")
+
+
+class Cancelled(CondtrackError):
+    """The batch that sent this Dask task was interrupted: the task stops without publishing its output."""
+
+
+class _StopCheck:
+    """A Dask task's per-frame callback (``track_input``'s ``progress_factory``): raises :class:`Cancelled` once the
+    batch's stop Event is set, asked at most every ``STOP_CHECK_SECONDS`` and at the end, before the output is written."""
+
+    def __init__(self, event_name: str):
+        from distributed import Event
+
+        self.event, self.next_check = Event(event_name), 0.0
+
+    def __call__(self, *_frame) -> None:
+        if time.monotonic() >= self.next_check:
+            self.close()
+
+    def close(self) -> None:
+        self.next_check = time.monotonic() + STOP_CHECK_SECONDS
+        if self.event.is_set():
+            raise Cancelled("cancelled: the batch was interrupted")
+
+
 def run_job(job: BatchJob) -> ClipRecord:
     """Track one input into its output (in whichever process runs it); a bad input gives a ``failed`` record."""
     use_threads(job.threads)
     started = time.perf_counter()
+    stop_check = (lambda *_passes: _StopCheck(job.stop_event)) if job.stop_event else None
     try:
-        summary = track_input(job.input, job.config, job.queries_path, job.output, job.seed)
+        summary = track_input(job.input, job.config, job.queries_path, job.output, job.seed, stop_check)
         digest = queries_hash(job.queries_path)
     except CondtrackError as error:
         return _record(job, "failed", error=str(error), seconds=round(time.perf_counter() - started, 3), frames=None,
@@ -277,38 +316,65 @@ def run_local(jobs: list[BatchJob], processes: int, on_record: Callable[[ClipRec
         pool.join()
 
 
-def run_dask(
-    jobs: list[BatchJob], address: str | None, scheduler_file: str | None, on_record: Callable[[ClipRecord], None],
-) -> None:
-    """One Dask task per job on the cluster at ``address`` (or described by ``scheduler_file``); ``on_record`` as each ends.
+def scheduler_address(scheduler_file: str) -> str:
+    """The address in a Dask scheduler file (the JSON ``dask scheduler --scheduler-file`` writes); CondtrackError
+    naming the file when it is not one."""
+    try:
+        text = Path(scheduler_file).read_text(encoding="utf-8")
+    except OSError as error:
+        raise read_error(error, f"--scheduler-file {scheduler_file}: cannot read ({error.strerror})") from None
+    try:
+        data = json.loads(text)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        data = None
+    if not (isinstance(data, dict) and isinstance(data.get("address"), str)):
+        raise CondtrackError(f"--scheduler-file {scheduler_file}: not a Dask scheduler file "
+                             "(a JSON object with the scheduler's 'address')")
+    return data["address"]
+
+
+def connect_dask(address: str | None, scheduler_file: str | None):
+    """A dask.distributed Client of the scheduler at ``address`` (or named by ``scheduler_file``), connected within
+    ``CONNECT_SECONDS``; CondtrackError when Dask is not installed or the scheduler does not answer."""
+    try:
+        from distributed import Client
+    except ImportError:
+        raise CondtrackError("--scheduler needs the Dask extra: pip install 'condtrack[dask]'") from None
+    where = address or scheduler_address(scheduler_file)
+    try:
+        return Client(where, timeout=CONNECT_SECONDS)
+    except (OSError, ValueError, TypeError) as error:  # unreachable (a TimeoutError), refused, or no address
+        raise CondtrackError(f"cannot reach the Dask scheduler {where}: {error}") from None
+
+
+def run_dask(jobs: list[BatchJob], client, on_record: Callable[[ClipRecord], None]) -> None:
+    """One task per job on ``client``'s cluster; ``on_record`` as each ends.
 
     The tasks write the outputs (the cluster must see the same file system) and
     are retried once when they raise; a task whose worker is lost is run again
     elsewhere by the scheduler (``distributed.scheduler.allowed-failures``
-    times). An interrupt cancels the tasks not yet started.
+    times). An interrupt cancels the tasks not yet started and sets the batch's
+    stop Event, on which the running ones stop within ``STOP_CHECK_SECONDS`` and
+    a frame, before writing their output.
     """
+    from distributed import Event, as_completed
+
+    stop = Event(f"condtrack-stop-{uuid.uuid4().hex}", client=client)
+    futures = {client.submit(run_job, replace(job, stop_event=stop.name), pure=False, retries=1): job
+               for job in jobs}
     try:
-        from distributed import Client, as_completed
-    except ImportError:
-        raise CondtrackError("--scheduler needs the Dask extra: pip install 'condtrack[dask]'") from None
-    where = address or scheduler_file
-    try:
-        client = Client(address, timeout="60s") if address else Client(scheduler_file=scheduler_file, timeout="60s")
-    except (OSError, ValueError) as error:
-        raise CondtrackError(f"cannot reach the Dask scheduler {where}: {error}") from None
-    with client:
-        futures = {client.submit(run_job, job, pure=False, retries=1): job for job in jobs}
-        try:
-            for future in as_completed(futures):
-                try:
-                    record = future.result()
-                except Exception as error:  # the task itself failed twice (not a bad input: those give records)
-                    record = _record(futures[future], "failed", error=f"Dask task failed: {error}", seconds=0.0,
-                                     frames=None, points=None, queries_hash="")
-                on_record(record)
-        except BaseException:
+        for future in as_completed(futures):
+            try:
+                record = future.result()
+            except Exception as error:  # the task itself failed twice (not a bad input: those give records)
+                record = _record(futures[future], "failed", error=f"Dask task failed: {error}", seconds=0.0,
+                                 frames=None, points=None, queries_hash="")
+            on_record(record)
+    except BaseException:
+        with held_signals():  # a second Ctrl-C does not stop the workers' stop halfway
+            stop.set()
             client.cancel(list(futures))
-            raise
+        raise
 
 
 @dataclass(frozen=True)
@@ -324,8 +390,11 @@ def plan_batch(
     inputs: list[str], config: Config, queries_path: str | None, out_dir: Path, suffix: str, seed: int,
     threads: int | None, shard_spec: tuple[int, int] | None = None, skip_existing: bool = False,
 ) -> BatchPlan:
-    """Name every input's output, create ``out_dir``, keep this shard, and find what ``skip_existing`` skips."""
+    """Name every input's output, refuse one that is the queries file, create ``out_dir``, keep this shard, and find
+    what ``skip_existing`` skips."""
     names = output_names(inputs)
+    refuse_overwriting_inputs({f"the output of '{i}',": out_dir / f"{n}{suffix}" for i, n in zip(inputs, names)},
+                              {"-p": queries_path})
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as error:

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import click
 
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.threads import THREADS_ENV, threads_from_environment, threads_per_job, use_threads
+from condtrack_cli.threads import THREADS_ENV, threads_from_environment, threads_per_job
 
 if TYPE_CHECKING:
     from condtrack_cli.batch import ClipRecord
@@ -22,12 +22,26 @@ if TYPE_CHECKING:
 BATCH_ONLY = ("skip_existing", "shard", "scheduler", "scheduler_file", "jobs")
 
 
+class _Shard(click.ParamType):
+    """``--shard I/N`` -> (I, N) with 0 <= I < N; anything else is a usage error."""
+
+    name = "I/N"
+
+    def convert(self, value, param, ctx) -> tuple[int, int]:
+        from condtrack_cli.batch import parse_shard
+
+        try:
+            return parse_shard(value)
+        except ValueError as error:
+            self.fail(str(error), param, ctx)
+
+
 def batch_options(command):
     """Decorate ``track`` with the batch options (resume, shards, Dask) and --threads."""
     options = [
         click.option("--skip-existing", is_flag=True,
                      help="Batch: skip inputs whose output exists from the same config, seed, queries and version."),
-        click.option("--shard", metavar="I/N", help="Batch: only the I-th of N parts of the inputs (I = 0..N-1)."),
+        click.option("--shard", type=_Shard(), metavar="I/N", help="Batch: only the I-th of N parts of the inputs (I = 0..N-1)."),
         click.option("--scheduler", metavar="ADDRESS", help="Batch: run one task per input on this dask.distributed scheduler."),
         click.option("--scheduler-file", type=click.Path(dir_okay=False, exists=True), help="Batch: as --scheduler, from a Dask scheduler file."),
         click.option("--threads", type=click.IntRange(min=1),
@@ -48,12 +62,11 @@ def requested_threads(threads: int | None) -> int | None:
         raise CondtrackError(str(error)) from None
 
 
-def single_run_threads(threads: int | None, batch_values: dict) -> None:
-    """Size the thread pools of a single run; refuse batch-only options without --out-dir."""
+def refuse_batch_options(batch_values: dict) -> None:
+    """A usage error naming the batch-only options given (a single run without --out-dir would ignore them)."""
     given = [f"--{name.replace('_', '-')}" for name in BATCH_ONLY if batch_values.get(name) not in (None, False)]
     if given:
-        raise CondtrackError(f"{', '.join(given)}: a batch option (give --out-dir)")
-    use_threads(requested_threads(threads))
+        click.get_current_context().fail(f"{', '.join(given)}: a batch option (give --out-dir)")
 
 
 class ClipProgress:
@@ -101,17 +114,18 @@ def sigterm_exits():
 
 def run_batch(
     inputs: list[str], config: Config, queries_path: str | None, out_dir: str, batch_format: str, seed: int,
-    jobs: int | None, quiet: bool, skip_existing: bool, shard: str | None, scheduler: str | None, scheduler_file: str | None,
-    threads: int | None,
+    jobs: int | None, quiet: bool, skip_existing: bool, shard: tuple[int, int] | None, scheduler: str | None,
+    scheduler_file: str | None, threads: int | None,
 ) -> None:
     """Plan, run and report a batch; exit 1 when an input failed. ``jobs`` None: -j not given (one job at a time)."""
-    from condtrack_cli.batch import append_record, parse_shard, plan_batch, run_dask, run_local
+    from condtrack_cli.batch import append_record, connect_dask, interrupted_record, plan_batch, run_dask, run_local
 
+    usage = click.get_current_context()
     if scheduler and scheduler_file:
-        raise CondtrackError("--scheduler and --scheduler-file: give one")
+        usage.fail("--scheduler and --scheduler-file: give one")
     on_dask = bool(scheduler or scheduler_file)
     if on_dask and jobs is not None:
-        raise CondtrackError("-j/--jobs: not with --scheduler (the Dask workers run the inputs: dask worker --nworkers)")
+        usage.fail("-j/--jobs: not with --scheduler (the Dask workers run the inputs: dask worker --nworkers)")
     jobs = jobs or 1
     requested = requested_threads(threads)
     if on_dask:
@@ -120,23 +134,32 @@ def run_batch(
         per_job, warning = threads_per_job(requested, min(jobs, len(inputs)))
     if warning and not quiet:
         click.echo(f"warning: {warning}", err=True)
-    plan = plan_batch(inputs, config, queries_path, Path(out_dir), f".{batch_format}", seed, per_job,
-                      parse_shard(shard) if shard else None, skip_existing)
-    progress = ClipProgress(len(plan.jobs), quiet)
-    records: dict[str, ClipRecord] = {}
+    # The scheduler is reached before the out-dir is made: one that does not answer leaves nothing behind.
+    connection = connect_dask(scheduler, scheduler_file) if on_dask else contextlib.nullcontext()
+    with connection as client:
+        plan = plan_batch(inputs, config, queries_path, Path(out_dir), f".{batch_format}", seed, per_job, shard,
+                          skip_existing)
+        progress = ClipProgress(len(plan.jobs), quiet)
+        records: dict[str, ClipRecord] = {}
 
-    def finished(record: ClipRecord) -> None:
-        append_record(Path(out_dir), record)
-        records[record.input] = record
-        progress(record)
+        def finished(record: ClipRecord) -> None:
+            append_record(Path(out_dir), record)
+            records[record.input] = record
+            progress(record)
 
-    with sigterm_exits():
-        for record in plan.skipped:
-            finished(record)
-        if on_dask:
-            run_dask(plan.todo, scheduler, scheduler_file, finished)
-        else:
-            run_local(plan.todo, jobs, finished)
+        with sigterm_exits():
+            for record in plan.skipped:
+                finished(record)
+            try:
+                if on_dask:
+                    run_dask(plan.todo, client, finished)
+                else:
+                    run_local(plan.todo, jobs, finished)
+            except (KeyboardInterrupt, SystemExit):  # the manifest says what did not end
+                for job in plan.todo:
+                    if job.input not in records:
+                        append_record(Path(out_dir), interrupted_record(job))
+                raise
     ordered = [records[job.input] for job in plan.jobs]
     failed = sum(r.status == "failed" for r in ordered)
     if not quiet:

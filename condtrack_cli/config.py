@@ -82,8 +82,9 @@ class Config:
     def to_yaml(self) -> str:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
 
-    def check_fits_frame(self, width: int, height: int, detecting: bool = True) -> None:
-        """Refuse a window (``frame_windows`` of any stage) larger than a ``width`` x ``height`` frame.
+    def check_fits_frame(self, width: int, height: int, detecting: bool = True, where: str = "input") -> None:
+        """Refuse a frame smaller than every setting allows, or a window (``frame_windows`` of any stage) larger
+        than a ``width`` x ``height`` frame; ``where`` names the input.
 
         ``detecting``: points are detected (no queries file), so the detector's
         windows count too; with queries they are only read on the query points,
@@ -91,17 +92,16 @@ class Config:
         """
         sections = {kind: stage.settings for kind, stage in self.stages.items() if detecting or kind != "detect"}
         sections.update({f"filter.{name}": settings for name, settings in self.filters.items()})
-        for prefix, settings in sections.items():
-            for field in settings.frame_windows:
-                side, smallest = getattr(settings, field), _minimum(type(settings), field)
-                if side <= min(width, height):
-                    continue
-                advice = (f"at most {min(width, height)}" if min(width, height) >= smallest else
-                          f"the {width}x{height} frame is smaller than the key's minimum of {smallest} px")
-                raise CondtrackError(
-                    f"config key '{prefix}.{field}': a window of {side} px does not fit in the "
-                    f"{width}x{height} frame ({advice})"
-                )
+        windows = [(f"{prefix}.{field}", getattr(settings, field), _minimum(type(settings), field))
+                   for prefix, settings in sections.items() for field in settings.frame_windows]
+        smallest = max((minimum for _, _, minimum in windows), default=1)
+        if min(width, height) < smallest:  # no setting makes it fit: the frame is the problem, not a key
+            raise CondtrackError(f"{where}: the {width}x{height} frame is too small for tracking "
+                                 f"(at least {smallest}x{smallest} px)")
+        for key, side, _ in windows:
+            if side > min(width, height):
+                raise CondtrackError(f"config key '{key}': a window of {side} px does not fit in the "
+                                     f"{width}x{height} frame (at most {min(width, height)})")
 
 
 def _minimum(model: type[BaseModel], field: str) -> int:
@@ -245,6 +245,9 @@ def read_yaml(path: str | Path) -> dict:
         text = path.read_text(encoding="utf-8")
     except OSError as error:
         raise read_error(error, f"cannot read config file {str(path)!r}: {error.strerror or error}") from None
+    except UnicodeDecodeError as error:
+        raise CondtrackError(f"config file {str(path)!r} is not UTF-8 text (byte {error.object[error.start]:#04x} "
+                             f"at offset {error.start})") from None
     try:
         raw = parse_yaml(text)
     except DuplicateKey as error:

@@ -3,6 +3,7 @@
 Imports no numpy: ``condtrack --help`` loads this module (tests/test_startup.py).
 """
 
+import errno
 import warnings
 
 
@@ -34,11 +35,28 @@ class CondtrackWarning(UserWarning):
 def warn(message: str) -> None:
     """Issue ``message`` as a :class:`CondtrackWarning`."""
     warnings.warn(message, CondtrackWarning, stacklevel=2)
+class InvalidArgument(CondtrackError, ValueError):
+    """A Python API argument with a wrong value (seed=-1); the message is the command line's for the same value."""
+
+    exit_code = 2
+
+
+class InvalidArgumentType(CondtrackError, TypeError):
+    """A Python API argument of a wrong type (seed=1.5, an array of strings)."""
+
+    exit_code = 2
 
 
 def read_error(error: OSError | Exception, message: str) -> CondtrackError:
     """``message`` as :class:`MissingInput` when ``error`` says the file does not exist, else as CondtrackError."""
     return (MissingInput if isinstance(error, FileNotFoundError) else CondtrackError)(message)
+
+
+def write_error(path: object, error: OSError) -> CondtrackError:
+    """``<path>: no space left on device`` for a full disk, else ``<path>: cannot write (<reason>)``."""
+    if error.errno == errno.ENOSPC:
+        return CondtrackError(f"{path}: no space left on device")
+    return CondtrackError(f"{path}: cannot write ({error.strerror or error})")
 
 
 def plain(value: object) -> str:

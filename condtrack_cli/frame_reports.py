@@ -10,12 +10,18 @@ only when the tracker stacks the whole pass (``Tracker.finish``), after the
 pipeline has let the motion stage's work arrays go. The arrays read back are
 the arrays reported, bit for bit. A pass's stacked tracks can wait on disk the
 same way (``park``) while the other pass runs. A folder that cannot be written
-is a :class:`CondtrackError` naming it.
+is a :class:`CondtrackError` naming it. A folder's name holds the host and the
+process id; the first folder a process makes removes those of dead processes.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import os
+import re
+import shutil
+import socket
 import tempfile
 from pathlib import Path
 
@@ -31,10 +37,38 @@ FIELDS = ("xy", "cov", "visible", "z", "R", "method")
 BLOCK_FRAMES = 64
 
 
+def _prefix() -> str:
+    """Temporary folders of this process are named ``condtrack-<host>-<pid>-...``, so a later run can tell a dead
+    process's folders (``kill -9`` runs no clean-up) from a running one's."""
+    return f"condtrack-{socket.gethostname()}-"
+
+
+@functools.cache
+def remove_stale_folders() -> None:
+    """Delete, once per process, the temporary folders left in ``TMPDIR`` by dead condtrack processes of this host."""
+    pattern = re.compile(re.escape(_prefix()) + r"(\d+)-")
+    with os.scandir(tempfile.gettempdir()) as entries:
+        for entry in entries:
+            found = pattern.match(entry.name)
+            if found and entry.is_dir(follow_symlinks=False) and not _alive(int(found.group(1))):
+                shutil.rmtree(entry.path, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        pass
+    return True
+
+
 def temporary_folder() -> tempfile.TemporaryDirectory:
     """A new temporary folder for arrays waiting on disk; a CondtrackError naming ``TMPDIR``'s folder when it fails."""
     try:
-        return tempfile.TemporaryDirectory(prefix="condtrack-")
+        remove_stale_folders()
+        return tempfile.TemporaryDirectory(prefix=f"{_prefix()}{os.getpid()}-")
     except OSError as error:
         raise _write_error(error) from error
 

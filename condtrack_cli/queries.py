@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from condtrack_cli.errors import CondtrackError, read_error
+from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, read_error
 from condtrack_cli.types import Queries, SequenceInfo
 
 REQUIRED_COLUMNS = ("frame", "x", "y")
@@ -80,9 +80,12 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
 
 def queries_from_rows(rows: np.ndarray, info: SequenceInfo) -> Queries:
     """Queries from an (N, 3) array of ``frame, x, y`` rows (points numbered 0..N-1), checked like a CSV's."""
-    rows = np.asarray(rows, dtype=np.float64)
+    given = np.asarray(rows)
+    if given.dtype.kind not in "iuf":
+        raise InvalidArgumentType(f"queries: expected an (N, 3) array of numbers frame, x, y; got dtype {given.dtype}")
+    rows = given.astype(np.float64)
     if rows.ndim != 2 or rows.shape[1] != 3 or not len(rows):
-        raise CondtrackError(f"queries: expected a non-empty (N, 3) array of frame, x, y; got shape {rows.shape}")
+        raise InvalidArgument(f"queries: expected a non-empty (N, 3) array of frame, x, y; got shape {rows.shape}")
     if not np.isfinite(rows).all() or not np.all(rows[:, 0] == np.round(rows[:, 0])):
         row = int(np.argmax(~np.isfinite(rows).all(axis=1) | (rows[:, 0] != np.round(rows[:, 0]))))
         raise CondtrackError(f"queries: row {row}: frame must be a whole number and x, y finite")

@@ -27,7 +27,9 @@ for the filled dots, which cv2 cannot batch).
 
 from __future__ import annotations
 
+import contextlib
 import itertools
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Iterator
@@ -35,7 +37,7 @@ from typing import Iterable, Iterator
 import cv2
 import numpy as np
 
-from condtrack_cli.errors import CondtrackError, warn
+from condtrack_cli.errors import CondtrackError, warn, write_error
 from condtrack_cli.io.atomic import atomic_path, check_writable, publish, staging_folder
 from condtrack_cli.registry import method_codes
 from condtrack_cli.types import Tracks
@@ -66,6 +68,7 @@ _ELLIPSE_VERTICES = 64
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 _FONT_SCALE = 0.35
 _HIDDEN_COLOUR = (230, 230, 230)
+_PROBE_BYTES = 4096  # written to tell a full disk from a missing codec or a writer that failed
 
 
 @dataclass(frozen=True)
@@ -244,14 +247,50 @@ def _drawn(overlay: Overlay, frames: Iterable[np.ndarray], out_path: Path) -> It
         raise CondtrackError(f"{out_path}: the input has {count} frames, the tracks {overlay.n_frames}")
 
 
-def _write_png(path: Path, image: np.ndarray) -> None:
+def _write_png(path: Path, image: np.ndarray, named: Path) -> None:
+    """``image`` as the PNG file ``path``; errors name ``named``, the output the user gave."""
     ok, encoded = cv2.imencode(".png", image)
     if not ok:
-        raise CondtrackError(f"{path}: OpenCV could not encode the image as PNG")
+        raise CondtrackError(f"{named}: OpenCV could not encode the image as PNG")
     try:
         path.write_bytes(encoded.tobytes())
     except OSError as error:
-        raise CondtrackError(f"{path}: cannot write ({error.strerror})") from None
+        raise write_error(named, error) from None
+
+
+def _check_space(folder: Path, named: Path) -> None:
+    """A CondtrackError naming ``named`` when a small file cannot be written in ``folder`` (e.g. the disk is full).
+
+    OpenCV's video writer reports no error: a full disk makes it fail to open, or
+    drop frames, without a word.
+    """
+    try:
+        with tempfile.TemporaryFile(dir=folder) as probe:
+            probe.write(bytes(_PROBE_BYTES))
+            probe.flush()
+    except OSError as error:
+        raise write_error(named, error) from None
+
+
+def _check_video(video: Path, count: int, named: Path) -> None:
+    """A CondtrackError naming ``named`` when the written ``video`` does not read back with ``count`` frames
+    (a frame dropped while the disk was full, when the space left is too small for a frame but not for the probe)."""
+    capture = cv2.VideoCapture(str(video))
+    stored = max(int(capture.get(cv2.CAP_PROP_FRAME_COUNT)), 0) if capture.isOpened() else 0
+    capture.release()
+    if stored != count:
+        raise CondtrackError(f"{named}: the video writer stored {stored} of {count} frames (is the disk full?)")
+
+
+@contextlib.contextmanager
+def _opencv_warnings_off() -> Iterator[None]:
+    """OpenCV's log at errors only during the block."""
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(level)
 
 
 def check_video_path(path: Path) -> None:
@@ -292,13 +331,19 @@ def render_overlay(tracks: Tracks, frames: Iterable[np.ndarray], out_path: str |
         writer = cv2.VideoWriter(str(video), cv2.VideoWriter.fourcc(*FOURCC), fps if fps > 0 else DEFAULT_FPS,
                                  (width, height), True)
         if writer.isOpened():
+            count = 0
             try:
-                for image in itertools.chain([first], images):
-                    writer.write(image)
+                with _opencv_warnings_off():  # a full disk gives one per frame; the run says it once
+                    for image in itertools.chain([first], images):
+                        writer.write(image)
+                        count += 1
             finally:
                 writer.release()
+            _check_space(staging, out_path)  # the writer drops frames on a full disk without raising
+            _check_video(video, count, out_path)
             publish(video, out_path)
             return out_path
+        _check_space(staging, out_path)  # a full disk, not a missing codec, when nothing can be written there
         folder = out_path.with_suffix("")
         if folder.exists():
             raise CondtrackError(f"{out_path}: no video codec opened and the fallback folder '{folder}' already exists")
@@ -306,7 +351,7 @@ def render_overlay(tracks: Tracks, frames: Iterable[np.ndarray], out_path: str |
         built = staging / folder.name
         built.mkdir()
         for k, image in enumerate(itertools.chain([first], images)):
-            _write_png(built / f"{k:05d}.png", image)
+            _write_png(built / f"{k:05d}.png", image, out_path)
         publish(built, folder)
         return folder
 
@@ -351,5 +396,5 @@ def render_contact_sheet(tracks: Tracks, frames: Iterable[np.ndarray], out_png: 
         row, column = divmod(index, columns)
         sheet[row * height:(row + 1) * height, column * width:(column + 1) * width] = tile
     with atomic_path(out_png) as temporary:
-        _write_png(temporary, sheet)
+        _write_png(temporary, sheet, out_png)
     return out_png

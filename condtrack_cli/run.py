@@ -14,7 +14,7 @@ from pathlib import Path
 
 from condtrack_cli.api import track_sequence
 from condtrack_cli.config import Config
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, write_error
 from condtrack_cli.io.atomic import through_links
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.write import csv_text, write_tracks
@@ -68,7 +68,7 @@ def track_input(
     seconds = time.perf_counter() - started
     tracks, info = result.result, result.info
     if output_path is None:
-        sys.stdout.write(csv_text(tracks))
+        write_stdout(csv_text(tracks))
     else:
         write_tracks(tracks, output_path, info, result.attributes, config.output)
     if overlay_path is not None:
@@ -81,6 +81,16 @@ def track_input(
         visible_share=float(tracks.visible[rows].mean()) if rows.any() else 0.0,
         seconds_per_frame=seconds / max(info.n_frames, 1),
     )
+
+
+def write_stdout(text: str) -> None:
+    """``text`` on stdout, flushed; a CondtrackError when it cannot be written (a redirect to a full disk)."""
+    try:
+        sys.stdout.write(text)
+        sys.stdout.flush()
+    except OSError as error:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the unwritten rest is dropped, not retried at exit
+        raise write_error("stdout", error) from None
 
 
 def check_overlay_path(path: Path) -> None:

@@ -46,16 +46,18 @@ def threads_per_job(requested: int | None, jobs: int, available: int | None = No
     """(threads for each of ``jobs`` parallel jobs, a warning or None).
 
     ``requested`` None: the ``available`` cores shared out, ``available // jobs``
-    each (at least 1). A request is capped at that share when ``jobs`` > 1 so the
-    jobs never oversubscribe the ``available`` cores; the warning says so.
+    each (at least 1). A request is capped at that share so the jobs never
+    oversubscribe the ``available`` cores (``--threads 100000`` started a
+    thread storm); the warning says so.
     """
     available = available or cores()
     fair = max(1, available // jobs)
     if requested is None:
         return fair, None
-    if jobs > 1 and requested > fair:
-        return fair, (f"{requested} threads x {jobs} jobs exceeds the {available} cores: "
-                      f"using {fair} thread{'s' if fair > 1 else ''} per job")
+    if requested > fair:
+        times, each = (f" x {jobs} jobs", " per job") if jobs > 1 else ("", "")
+        return fair, (f"{requested} threads{times} exceeds the {available} core{'s' if available > 1 else ''}: "
+                      f"using {fair} thread{'s' if fair > 1 else ''}{each}")
     return requested, None
 
 
@@ -65,11 +67,12 @@ def blas_environment(threads: int | None) -> dict[str, str]:
 
 
 def use_threads(threads: int | None) -> None:
-    """Size OpenCV's thread pool and scipy.fft's workers for this process (None: every core it may use)."""
+    """Size OpenCV's thread pool and scipy.fft's workers for this process (None or more than its cores: every core
+    it may use)."""
     import cv2
 
     global _fft_workers
-    _fft_workers = cores() if threads is None else threads
+    _fft_workers = cores() if threads is None else min(threads, cores())
     cv2.setNumThreads(_fft_workers)
 
 

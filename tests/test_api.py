@@ -122,3 +122,22 @@ def test_warnings_are_python_warnings_that_tests_can_make_errors(tmp_path):
         ct.track(str(folder), method="stk")
     with pytest.raises(ct.CondtrackWarning):  # this suite makes every warning an error (pyproject.toml)
         ct.track(str(folder), method="stk")
+@pytest.mark.parametrize("keywords, kind, option", [
+    ({"seed": -1}, ValueError, ["--seed", "-1"]),
+    ({"seed": 2**64}, ValueError, ["--seed", str(2**64)]),
+    ({"seed": 1.5}, TypeError, ["--seed", "1.5"]),
+    ({"queries": np.array([["0", "10", "10"]])}, TypeError, None),
+    ({"queries": np.array([[0.0, "a", 1.0]], dtype=object)}, TypeError, None),
+])
+def test_bad_arguments_raise_condtrack_errors_worded_as_the_command_line(keywords, kind, option):
+    """Issue 28.12: ct.track raised numpy's bare ValueError or TypeError; now a ct.CondtrackError (still a ValueError
+    or TypeError), before any work, saying what ``condtrack track`` says of the same value."""
+    with pytest.raises(ct.CondtrackError) as raised:
+        ct.track(str(SAMPLE), method="stk", **keywords)
+    assert isinstance(raised.value, kind) and ct.CondtrackError is CondtrackError
+    if option is not None:
+        done = subprocess.run([sys.executable, "-c", "from condtrack_cli.cli import main; main()", "track", str(SAMPLE),
+                               *option], capture_output=True, text=True, timeout=60)
+        assert done.returncode == 2
+        message = str(raised.value).removeprefix("seed: ")
+        assert message.replace("'", "") in done.stderr.replace("'", ""), (message, done.stderr)

@@ -77,7 +77,7 @@ def test_shards_cover_every_input_once():
     assert sorted(sum(parts, [])) == items and [len(p) for p in parts] == [4, 4, 3]
     assert parse_shard("2/3") == (2, 3)
     for bad in ("3/3", "-1/3", "1", "a/b", "0/0"):
-        with pytest.raises(CondtrackError, match="--shard"):
+        with pytest.raises(ValueError, match="expected I/N"):
             parse_shard(bad)
 
 
@@ -281,12 +281,14 @@ def test_skip_existing_redoes_another_input_with_the_same_output_name(tmp_path):
 
 
 def test_batch_only_options_are_refused_where_they_would_be_ignored(clips, tmp_path):
-    """Issue 28.9: -j with one input and no --out-dir, and -j with --scheduler, did nothing and said nothing."""
+    """Issue 28.9: -j with one input and no --out-dir, and -j with --scheduler, did nothing and said nothing; usage
+    errors (28.18)."""
+    usage = "Usage: condtrack track [OPTIONS] INPUT...\n"
     result = run_cli("track", clips[0], "-m", "stk", "-j", "2", "-o", str(tmp_path / "out.csv"))
-    assert result.returncode == 1 and result.stderr == "Error: --jobs: a batch option (give --out-dir)\n"
+    assert result.returncode == 2 and result.stderr == usage + "Error: --jobs: a batch option (give --out-dir)\n"
     result = run_cli("track", *clips[:2], "-m", "stk", "--out-dir", str(tmp_path / "d"), "-j", "2",
                      "--scheduler", "tcp://127.0.0.1:9")
-    assert result.returncode == 1 and result.stderr.startswith("Error: -j/--jobs: not with --scheduler")
+    assert result.returncode == 2 and result.stderr.startswith(usage + "Error: -j/--jobs: not with --scheduler")
     assert not (tmp_path / "out.csv").exists() and not (tmp_path / "d").exists()
 
 
@@ -308,3 +310,76 @@ def test_from_list_paths_are_relative_to_the_list_and_names_do_not_depend_on_the
         assert [r["status"] for r in manifest(out_dir)] == ["ok", "ok"]
         names.append(sorted(p.name for p in out_dir.glob("*.h5")))
     assert names == [["clip000_frames.h5", "clip001_frames.h5"]] * 2
+
+
+def test_a_scheduler_that_is_not_one_or_does_not_answer_fails_fast_and_leaves_nothing(clips, tmp_path):
+    """Issues 28.11 and 28.16: a scheduler file that is not one was an AssertionError; an unreachable scheduler took
+    60 s and left an empty out-dir."""
+    pytest.importorskip("distributed")
+    not_json, no_address = tmp_path / "notes.txt", tmp_path / "other.json"
+    not_json.write_text("hello\n")
+    no_address.write_text('{"a": 1}\n')
+    out_dir = tmp_path / "out"
+    for path in (not_json, no_address):
+        result = run_cli("track", *clips[:2], "--out-dir", str(out_dir), "--scheduler-file", str(path))
+        assert result.returncode == 1 and result.stderr == (
+            f"Error: --scheduler-file {path}: not a Dask scheduler file (a JSON object with the scheduler's 'address')\n")
+    started = time.monotonic()
+    result = run_cli("track", *clips[:2], "--out-dir", str(out_dir), "--scheduler", "tcp://127.0.0.1:9")
+    assert time.monotonic() - started < 10
+    assert result.returncode == 1 and result.stderr.startswith("Error: cannot reach the Dask scheduler tcp://127.0.0.1:9")
+    assert result.stderr.count("\n") == 1 and not out_dir.exists()
+
+
+def test_a_dask_batch_stops_promptly_on_sigterm_and_writes_its_manifest(tmp_path):
+    """Issue 28.16: the cluster's running tasks went on writing outputs seconds after the batch exited, and the
+    inputs that had not ended were not in the manifest."""
+    distributed = pytest.importorskip("distributed")
+    clips = make_clips(tmp_path / "data", 4, n_frames=[3] + [60] * 3)
+    out_dir = tmp_path / "tracks"
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, protocol="tcp",
+                                  dashboard_address=":0") as cluster:
+        process = subprocess.Popen(
+            [sys.executable, "-c", "from condtrack_cli.cli import main; main()", "track", *clips, "-m", "cnlf",
+             "--out-dir", str(out_dir), "--scheduler", cluster.scheduler_address],
+            preexec_fn=default_sigint, stderr=subprocess.PIPE, text=True)
+        for line in process.stderr:  # until the first input is reported done
+            if "[1/" in line:
+                break
+        process.send_signal(signal.SIGTERM)
+        signalled = time.monotonic()
+        _, stderr = process.communicate(timeout=60)
+        assert time.monotonic() - signalled < 5 and process.returncode == 143, stderr
+        time.sleep(2.0)  # a task left running would publish its output meanwhile
+    assert [p.name for p in out_dir.glob("*.h5")] == ["clip000_frames.h5"]
+    assert [(r["input"], r["status"]) for r in manifest(out_dir)] == [
+        (clips[0], "ok"), *[(clip, "interrupted") for clip in clips[1:]]]
+    assert "Traceback" not in stderr
+
+
+def test_more_threads_than_cores_are_capped_with_a_warning(clips, tmp_path):
+    """Issue 28.14: --threads 100000 (or CONDTRACK_THREADS) was taken as asked, a thread storm."""
+    result = run_cli("track", clips[0], "-m", "stk", "--threads", "100000", "-o", str(tmp_path / "o.csv"), affinity={0})
+    assert result.returncode == 0 and "warning: 100000 threads exceeds the 1 core: using 1 thread\n" in result.stderr
+    result = run_cli("track", clips[0], "-m", "stk", "--out-dir", str(tmp_path / "d"), affinity={0},
+                     env={**os.environ, "CONDTRACK_THREADS": "100000"})
+    assert result.returncode == 0 and "warning: 100000 threads exceeds the 1 core: using 1 thread\n" in result.stderr
+    assert manifest(tmp_path / "d")[0]["threads"] == {"opencv": 1, "fft": 1, "omp": ""}
+
+
+def test_a_batch_output_that_is_the_queries_file_is_refused_before_work(clips, tmp_path):
+    """Issue 28.5's batch side: an input named 'queries' wrote OUT_DIR/queries.csv over the -p file."""
+    import shutil
+
+    clip = tmp_path / "queries"
+    shutil.copytree(clips[0], clip)
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    queries = out_dir / "queries.csv"
+    queries.write_text("frame,x,y\n0,40,30\n")
+    result = run_cli("track", str(clip), clips[1], "-p", str(queries), "-m", "stk", "--out-dir", str(out_dir),
+                     "--format", "csv")
+    assert result.returncode == 1 and result.stderr == (
+        f"Error: the output of '{clip}', {queries}: the same file as the input -p {queries}; "
+        "writing it would destroy the input\n")
+    assert queries.read_text() == "frame,x,y\n0,40,30\n" and [p.name for p in out_dir.iterdir()] == ["queries.csv"]

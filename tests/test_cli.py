@@ -116,7 +116,7 @@ def test_bad_config_and_output_are_refused_before_work(shifted_folder, tmp_path)
     result = run_cli("track", str(folder), "-o", str(tmp_path / "a.txt"))
     assert result.returncode != 0 and "unknown output format" in result.stderr
     result = run_cli("track", str(folder), "-m", "kalman")
-    assert result.returncode != 0 and "valid:" in result.stderr
+    assert result.returncode == 2 and "is not one of" in result.stderr
     assert not list(tmp_path.glob("a.*"))
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import pickle
 
 import cv2
@@ -237,6 +238,38 @@ def test_load_gt_tapvid_refuses_several_videos_and_bad_files(tmp_path):
     (tmp_path / "junk.pkl").write_bytes(b"not a pickle")
     with pytest.raises(CondtrackError, match="junk.pkl"):
         load_gt_tapvid(tmp_path / "junk.pkl")
+
+
+class _Touches:
+    """Unpickled, it runs ``touch`` on a file (a crafted TAP-Vid file could run anything)."""
+
+    def __init__(self, target):
+        self.target = str(target)
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.target}",)
+
+
+@pytest.mark.parametrize("protocol", [0, 2, 5])
+def test_a_tapvid_pickle_that_would_run_code_is_refused_without_running(tmp_path, protocol):
+    """Issue 28.19: pickle.load ran whatever the truth file named."""
+    target = tmp_path / "pwned"
+    video = tapvid_video()
+    video["extra"] = _Touches(target)
+    gt = tmp_path / "gt.pkl"
+    gt.write_bytes(pickle.dumps({"bear": video}, protocol=protocol))
+    with pytest.raises(CondtrackError, match=r"gt.pkl: cannot read the TAP-Vid pickle \(refused: it names "
+                                             r"(posix|os)\.system, neither a NumPy array nor a plain value\)"):
+        load_gt_tapvid(gt)
+    pred = write_pred_csv(tmp_path / "pred.csv", [0, 1], tapvid_to_pixels(video["points"], 8, 6), ~video["occluded"],
+                          np.broadcast_to(np.eye(2), (2, 3, 2, 2)))
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--gt-format", "tapvid"])
+    assert isinstance(result.exception, CondtrackError) and "refused" in str(result.exception)
+    assert not target.exists()
+    del video["extra"]  # the same file without it loads, and as NumPy 1 wrote it (numpy.core; names in text < 4)
+    clean = pickle.dumps({"bear": video}, protocol=protocol)
+    gt.write_bytes(clean.replace(b"numpy._core", b"numpy.core") if protocol < 4 else clean)
+    np.testing.assert_array_equal(load_gt_tapvid(gt).visible, ~video["occluded"])
 
 
 # ---------------------------------------------------------------- GT CSV

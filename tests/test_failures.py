@@ -65,7 +65,6 @@ def test_input_failures(tmp_path):
         ("filter: {stk: {fb_threshold: -1}}\n", [], "'filter.stk.fb_threshold'"),
         ("", ["--set", "filter.stk.levels=0"], "'filter.stk.levels'"),
         ("", ["--set", "filter.stk.win_size=500"], "does not fit in the 320x240 frame"),
-        ("", ["-m", "nope"], "'filter.method': unknown method 'nope'"),
         # issue 28.6: PyYAML keeps the last of two equal keys silently
         ("motion:\n  levels: 3\n  levels: 2\n", [], "c.yaml', line 3: key 'levels' given twice"),
         ("filter: {stk: {win_size: 31, win_size: 15}}\n", [], "line 1: key 'win_size' given twice"),
@@ -147,9 +146,10 @@ def test_same_seed_same_bytes(tmp_path):
 
 
 def _one_error_line(result, code: int, message: str) -> None:
-    """Exit ``code``, stderr exactly one ``Error:`` line holding ``message`` (after warnings), no traceback."""
+    """Exit ``code``, stderr exactly one ``Error:`` line holding ``message`` (after warnings and, for a usage error,
+    Click's usage line), no traceback."""
     assert result.returncode == code, result.stderr
-    lines = [line for line in result.stderr.strip().splitlines() if not line.startswith("warning: ")]
+    lines = [line for line in result.stderr.strip().splitlines() if not line.startswith(("warning: ", "Usage: "))]
     assert len(lines) == 1 and lines[0].startswith("Error: ") and message in lines[0], result.stderr
 
 
@@ -167,16 +167,20 @@ def test_synth_into_a_folder_that_cannot_be_written(tmp_path):
 
 
 
-def test_a_frame_smaller_than_every_window_is_refused_with_honest_advice(tmp_path):
-    """2x2 frames with a query: detect.block does not apply (no detection); the advice is not below a key's minimum."""
-    folder = _frames_folder(tmp_path, ((2, 2),) * 3)
+@pytest.mark.parametrize("size", [(1, 1), (2, 2), (2, 40)])
+@pytest.mark.parametrize("method", ["stk", "clf"])
+def test_a_frame_smaller_than_every_window_is_refused_as_too_small(tmp_path, size, method):
+    """Issue 28.11: a 1x1 frame was blamed on detect.block (or motion.local_window), which no value could fix."""
+    folder = _frames_folder(tmp_path, (size,) * 3)
     queries = tmp_path / "q.csv"
-    queries.write_text("frame,x,y\n0,0.5,0.5\n")
-    result = run_cli("track", str(folder), "-p", str(queries), "-m", "stk", "-o", str(tmp_path / "out.csv"))
-    _one_error_line(result, 1, "the 2x2 frame is smaller than the key's minimum of")
-    assert "detect.block" not in result.stderr and "at most" not in result.stderr
-    result = run_cli("track", str(folder), "-m", "stk", "-o", str(tmp_path / "out.csv"))
-    _one_error_line(result, 1, "'detect.block'")
+    queries.write_text("frame,x,y\n0,0,0\n")
+    for extra in ([], ["-p", str(queries)]):
+        result = run_cli("track", str(folder), *extra, "-m", method, "-o", str(tmp_path / "out.csv"))
+        _one_error_line(result, 1, f"{folder}: the {size[1]}x{size[0]} frame is too small for tracking (at least 3x3 px)")
+        assert "config key" not in result.stderr
+    (tmp_path / "five").mkdir()
+    result = run_cli("track", str(_frames_folder(tmp_path / "five", ((5, 5),) * 3)), "-m", method)
+    _one_error_line(result, 1, "config key 'detect.block': a window of 7 px does not fit in the 5x5 frame (at most 5)")
 
 
 @pytest.mark.parametrize("option, value", [("--atol-px", "nan"), ("--atol-px", "inf"), ("--rtol-cov", "inf"),
@@ -254,3 +258,88 @@ def test_messages_show_values_plainly_and_name_an_input_once(tmp_path):
     tracks.write_text("point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method\n0,0,1.0,2.0,1,0,1,1,stk\n0,1,abc,2,1,0,1,1,stk\n")
     result = run_cli("info", str(tracks))
     assert result.stderr == f"Error: {tracks}: line 3, column 'x': 'abc' is not a number\n"
+
+
+@pytest.mark.parametrize("args, message", [
+    (["track"], "no INPUT given"),
+    (["track", "{clip}", "{clip2}", "--out-dir", "{tmp}/d", "--shard", "3/2"], "Invalid value for '--shard'"),
+    (["track", "{clip}", "{clip2}", "--out-dir", "{tmp}/d", "--shard", "0/0"], "Invalid value for '--shard'"),
+    (["track", "{clip}", "{clip2}", "--out-dir", "{tmp}/d", "--shard", "abc"], "Invalid value for '--shard'"),
+    (["track", "{clip}", "-m", "foo"], "Invalid value for '-m' / '--method': 'foo' is not one of"),
+    (["track", "{clip}", "--skip-existing"], "--skip-existing: a batch option (give --out-dir)"),
+    (["track", "{clip}", "--shard", "0/2"], "--shard: a batch option (give --out-dir)"),
+    (["track", "{clip}", "{clip2}"], "several inputs need --out-dir"),
+    (["track", "{clip}", "{clip2}", "-o", "{tmp}/o.csv"], "-o and --overlay take one input"),
+    (["track", "{clip}", "--out-dir", "{tmp}/d", "-o", "{tmp}/o.csv"], "-o and --overlay take one input"),
+    (["synth", "{tmp}/s", "--scene", "ring", "--size", "abc"], "Invalid value for '--size': expected WIDTHxHEIGHT"),
+    (["synth", "{tmp}/s", "--scene", "nosuch"], "Invalid value for '--scene': unknown scene 'nosuch'"),
+    (["synth", "{tmp}/s", "--scene", "ring", "--size", "100000x100000"], "too large (at most 4096 px each way)"),
+])
+def test_command_line_mistakes_are_usage_errors(tmp_path, args, message):
+    """Issue 28.18 (and the synth size bound of 28.11): exit 2 after Click's usage line, the filter.method key unnamed
+    (the user typed -m), nothing created."""
+    args = [a.format(clip=SAMPLE, clip2=SAMPLES / "ring", tmp=tmp_path) for a in args]
+    result = run_cli(*args)
+    _one_error_line(result, 2, message)
+    assert result.stderr.startswith(f"Usage: condtrack {args[0]} [OPTIONS]") and "filter.method" not in result.stderr
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_config_not_in_utf8_and_a_seed_beyond_64_bits_are_refused_before_work(tmp_path):
+    """Issue 28.11: a Latin-1 config was a UnicodeDecodeError traceback; --seed 2^64 failed only after the whole run,
+    when the HDF5 attribute was written."""
+    config = tmp_path / "c.yaml"
+    config.write_bytes("# réglages\nmotion: {levels: 3}\n".encode("latin-1"))
+    result = run_cli("track", str(SAMPLE), "-c", str(config), "-o", str(tmp_path / "out.h5"))
+    _one_error_line(result, 1, f"config file '{config}' is not UTF-8 text (byte 0xe9 at offset 3)")
+    config.unlink()
+    result = run_cli("track", str(SAMPLE), "-m", "stk", "--seed", str(2**64), "-o", str(tmp_path / "out.h5"))
+    _one_error_line(result, 2, f"Invalid value for '--seed': {2**64} is not in the range 0<=x<=9223372036854775807")
+    assert "frame" not in result.stderr  # refused before tracking: no progress line
+    assert not list(tmp_path.iterdir())
+    result = run_cli("track", str(SAMPLE), "-m", "stk", "--seed", str(2**63 - 1), "-o", str(tmp_path / "out.h5"))
+    assert result.returncode == 0, result.stderr
+
+
+def test_a_track_csv_with_a_huge_frame_number_is_refused_within_a_small_memory(tmp_path):
+    """Issue 28.13: two rows, one on frame 100000000, made info allocate 9.5 GiB (dense (P, F) arrays)."""
+    import tracemalloc
+
+    from condtrack_cli.errors import CondtrackError
+    from condtrack_cli.evaluate.groundtruth import load_gt_csv
+    from condtrack_cli.io.read import read_tracks
+
+    tracks, truth = tmp_path / "t.csv", tmp_path / "gt.csv"
+    tracks.write_text("point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method\n"
+                      "0,0,1.0,2.0,1,0,1,1,clf\n0,100000000,1.0,2.0,1,0,1,1,clf\n")
+    truth.write_text("point_id,frame,x,y,visible\n0,0,1,2,1\n1,100000000,1,2,1\n")
+    for read, path in ((read_tracks, tracks), (load_gt_csv, truth)):
+        tracemalloc.start()
+        try:
+            with pytest.raises(CondtrackError, match=r"line 3 has frame 100000000, but the file has 2 rows for "):
+                read(path)
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 2**25, peak  # 32 MiB; the dense arrays took 9.5 GiB
+    result = run_cli("info", str(tracks))
+    _one_error_line(result, 1, f"{tracks}: line 3 has frame 100000000, but the file has 2 rows for 1 points")
+    result = run_cli("eval", str(SAMPLE / "tracks.csv"), str(truth))
+    _one_error_line(result, 1, f"{truth}: line 3 has frame 100000000")
+
+
+def test_a_named_pipe_input_is_refused_at_once(tmp_path):
+    """Issue 28.15: OpenCV's open blocked on a FIFO, deaf to Ctrl-C and SIGTERM; the run must end by itself."""
+    fifo = tmp_path / "clip.mp4"
+    os.mkfifo(fifo)
+    process = subprocess.Popen([sys.executable, "-c", "from condtrack_cli.cli import main; main()", "track", str(fifo),
+                                "-o", str(tmp_path / "out.csv")], stderr=subprocess.PIPE, text=True)
+    try:
+        _, stderr = process.communicate(timeout=30)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.communicate()
+        pytest.fail("the run hung on the named pipe")
+    assert process.returncode == 1 and stderr == (
+        f"Error: {fifo}: not a regular file (a named pipe); give a video file or a folder of frames\n")
+    assert [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import socket
+import subprocess
+import sys
 import tempfile
 from pathlib import Path
 
@@ -13,6 +17,7 @@ from condtrack_cli import frame_reports
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.frame_reports import FIELDS, FrameReports, park
 from condtrack_cli.types import FrameEstimate, Queries, Tracks
+from conftest import SAMPLES
 
 
 def random_report(rng: np.random.Generator, n_points: int) -> FrameEstimate:
@@ -86,3 +91,20 @@ def test_an_unwritable_temporary_folder_is_a_one_line_error(monkeypatch, tmp_pat
 def test_stacking_no_report_is_an_error():
     with FrameReports() as history, pytest.raises(ValueError, match="no frame"):
         history.stack("xy")
+
+
+def test_a_run_removes_the_temporary_folders_of_dead_processes(tmp_path):
+    """Issue 28.17: a run killed with SIGKILL left its condtrack-* blocks in TMPDIR for good."""
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    host = socket.gethostname()
+    stale, running = tmp_path / f"condtrack-{host}-{dead.pid}-x1", tmp_path / f"condtrack-{host}-{os.getpid()}-x2"
+    for folder in (stale, running):
+        folder.mkdir()
+        (folder / "000000.xy.npy").write_bytes(b"block")
+    sample = SAMPLES / "occlusion"  # queries up to frame 7: the forward pass waits on disk (park)
+    result = subprocess.run([sys.executable, "-c", "from condtrack_cli.cli import main; main()", "track", str(sample),
+                             "-p", str(sample / "queries.csv"), "-m", "stk", "-q"],
+                            capture_output=True, text=True, timeout=120, env={**os.environ, "TMPDIR": str(tmp_path)})
+    assert result.returncode == 0, result.stderr
+    assert [p.name for p in tmp_path.iterdir()] == [running.name]

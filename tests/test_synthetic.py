@@ -237,7 +237,7 @@ def test_command_line_writes_samples_and_single_scenes(tmp_path):
     assert result.exit_code == 0
     assert len(list((tmp_path / "fast").glob("*.png"))) == 5
     result = runner.invoke(cli, ["synth", str(tmp_path / "bad"), "--scene", "fast", "--size", "10x10"])
-    assert result.exit_code != 0 and "size 10x10 is too small" in str(result.exception)
+    assert result.exit_code == 2 and "size 10x10 is too small" in result.output
 
 
 def test_unknown_scene_lists_the_valid_names():

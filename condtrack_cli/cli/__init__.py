@@ -66,7 +66,7 @@ def main() -> None:
     """Console entry point: one-line ``Error: ...`` and a non-zero exit on bad input."""
     raise_on_sigterm()
     try:
-        code = cli.main(standalone_mode=False)
+        code = cli.main(prog_name="condtrack", standalone_mode=False)
     except CondtrackError as error:
         click.echo(f"Error: {error}", err=True)
         sys.exit(error.exit_code)
@@ -74,7 +74,9 @@ def main() -> None:
         interrupt = stop if isinstance(stop, KeyboardInterrupt) else stop.__context__
         click.echo("Error: interrupted", err=True)
         sys.exit(exit_code(interrupt) if isinstance(interrupt, KeyboardInterrupt) else 130)
-    except click.ClickException as error:
+    except click.ClickException as error:  # a usage error (exit 2) shows the command's usage line first, as Click does
+        if isinstance(error, click.UsageError) and error.ctx is not None:
+            click.echo(error.ctx.get_usage(), err=True)
         click.echo(f"Error: {error.format_message()}", err=True)
         sys.exit(error.exit_code)
     sys.exit(code if isinstance(code, int) else 0)

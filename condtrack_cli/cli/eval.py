@@ -50,7 +50,8 @@ def _print_table(result: dict, notes: list[str], title: str) -> None:
               help="first: score the frames after each point's query frame; strided: every frame but it.")
 @click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
 @click.option("--gt-format", type=click.Choice(tuple(_GT_READERS)), default="csv", show_default=True,
-              help="csv: point_id,frame,x,y,visible; tapvid: a TAP-Vid pickle holding one video.")
+              help="csv: point_id,frame,x,y,visible; tapvid: a TAP-Vid pickle holding one video (arrays, dicts, "
+                   "lists and numbers only: a pickle naming other code is refused).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, metavar="FILE.png",
               help="Also draw the reliability diagram and the normalised-error histogram (needs condtrack[plot]).")
 def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: str, plot_path: str | None) -> None:

@@ -3,18 +3,20 @@
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 from pathlib import Path
 
 import click
 
-from condtrack_cli import registry
+from condtrack_cli import MAX_SEED, registry
+from condtrack_cli.batch_command import batch_options, refuse_batch_options, requested_threads, run_batch
 from condtrack_cli.cli.options import overlay_options, overlay_style
-from condtrack_cli.batch_command import batch_options, run_batch, single_run_threads
-from condtrack_cli.config import Config, check_method, config_keys, load_config
-from condtrack_cli.errors import CondtrackError, read_error
+from condtrack_cli.config import Config, config_keys, load_config
+from condtrack_cli.errors import read_error
 from condtrack_cli.io.atomic import refuse_overwriting_inputs
 from condtrack_cli.progress import Progress, show_warnings
+from condtrack_cli.threads import threads_per_job, use_threads
 
 
 class _MethodChoice(click.Choice):
@@ -31,10 +33,6 @@ class _MethodChoice(click.Choice):
     def choices(self, _value) -> None:
         """Click's constructor sets the choices; they are the registry's instead."""
 
-    def convert(self, value, param, ctx) -> str:
-        check_method(value)  # the same one-line error as filter.method in a YAML config
-        return value
-
 
 def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -> list[str]:
     """Shell completion of --set: the config keys that start with what is typed."""
@@ -49,7 +47,8 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 @click.option("-o", "--output", "output_path", type=click.Path(dir_okay=False), help="Output .h5/.hdf5 or .csv (default: CSV on stdout).")
 @click.option("--overlay", "overlay_path", type=click.Path(dir_okay=False), help="Also render an overlay video (.mp4) of the tracks.")
 @overlay_options
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True, help="Seed of every random draw.")
+@click.option("--seed", type=click.IntRange(min=0, max=MAX_SEED), default=0, show_default=True,
+              help="Seed of every random draw.")
 @click.option("--smooth", is_flag=True, help="Two-way smoothing: each frame's estimate also uses the later frames (filter.smooth).")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", shell_complete=_complete_key, help="Override one config value, e.g. motion.levels=3 (repeatable).")
 @click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
@@ -70,13 +69,24 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     from condtrack_cli.run import track_input
 
     show_warnings(not quiet)
+    usage = click.get_current_context()
     style = overlay_style(overlay_points, ellipses, ellipse_cap, overlay_path)
     inputs = list(inputs) + (_read_list(list_path) if list_path else [])
     if not inputs:
-        raise CondtrackError("no INPUT given (a frame folder or a video file, or --from-list FILE)")
+        usage.fail("no INPUT given (a frame folder or a video file, or --from-list FILE)")
+    in_batch = len(inputs) > 1 or out_dir is not None
+    if in_batch and (output_path or overlay_path):
+        usage.fail("-o and --overlay take one input; a batch writes into --out-dir")
+    if in_batch and out_dir is None:
+        usage.fail("several inputs need --out-dir")
+    if not in_batch:
+        refuse_batch_options({**batch, "jobs": jobs})
     config: Config = load_config(config_path, list(overrides) + (["filter.smooth=true"] if smooth else []), method)
-    if len(inputs) == 1 and out_dir is None:
-        single_run_threads(threads, {**batch, "jobs": jobs})
+    if not in_batch:
+        threads, warning = threads_per_job(requested_threads(threads), 1)
+        if warning:
+            logging.getLogger("condtrack").warning(warning)
+        use_threads(threads)
         refuse_overwriting_inputs({"-o": output_path, "--overlay": overlay_path},
                                   {"INPUT": inputs[0], "-p": queries_path, "-c": config_path})
         with contextlib.nullcontext() if quiet else Progress() as progress:
@@ -84,10 +94,6 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         if not quiet:
             click.echo(summary.line(config.method), err=True)
         return
-    if output_path or overlay_path:
-        raise CondtrackError("-o and --overlay take one input; a batch writes into --out-dir")
-    if out_dir is None:
-        raise CondtrackError("several inputs need --out-dir")
     run_batch(inputs, config, queries_path, out_dir, batch_format, seed, jobs, quiet, threads=threads, **batch)
 
 

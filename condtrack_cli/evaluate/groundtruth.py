@@ -31,6 +31,7 @@ beyond the GT are not scored.
 from __future__ import annotations
 
 import csv
+import importlib
 import pickle
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +39,7 @@ from pathlib import Path
 import numpy as np
 
 from condtrack_cli.errors import CondtrackError, read_error
-from condtrack_cli.io.read import number_column, repeated_rows
+from condtrack_cli.io.read import number_column, refuse_sparse, repeated_rows
 from condtrack_cli.types import Tracks
 
 #: Columns a ground-truth CSV must have.
@@ -142,6 +143,7 @@ def load_gt_csv(path: str | Path) -> GroundTruth:
 
     point_id, point_index = np.unique(pid.astype(np.int64), return_inverse=True)
     frame = frame.astype(np.int64)
+    refuse_sparse(path, frame, lines, len(point_id))
     n_points, n_frames = len(point_id), int(frame.max()) + 1
     _refuse_rows(repeated_rows(point_index, frame), lines, path, "a second row for the same point_id and frame")
 
@@ -190,6 +192,31 @@ def _frame_size(video: object, path: Path) -> tuple[int, int]:
     raise CondtrackError(f"{path}: 'video' is neither an (F, H, W, 3) array nor a list of encoded frames")
 
 
+#: The only globals a TAP-Vid pickle may name: NumPy's array, dtype and scalar rebuilders (under ``numpy.core``
+#: when NumPy 1 wrote the file, ``numpy._core`` for NumPy 2) and the bytes decoder of pickle protocols 0-2.
+_PICKLE_GLOBALS = {
+    "numpy": {"ndarray", "dtype"}, "multiarray": {"_reconstruct", "scalar"}, "numeric": {"_frombuffer"},
+    "_codecs": {"encode"},
+}
+
+
+class _ArraysOnly(pickle.Unpickler):
+    """An unpickler of NumPy arrays, dicts, lists, tuples, strings, bytes and numbers only: a pickle naming any other
+    callable (``os.system`` in a crafted ``__reduce__``) is refused before anything is called."""
+
+    def find_class(self, module: str, name: str):
+        package, _, leaf = module.rpartition(".")
+        key = leaf if package in ("numpy.core", "numpy._core") else module
+        if name not in _PICKLE_GLOBALS.get(key, ()):
+            raise pickle.UnpicklingError(f"refused: it names {module}.{name}, neither a NumPy array nor a plain value")
+        if key in ("numpy", "_codecs"):
+            return super().find_class(module, name)
+        try:  # the installed NumPy's own module: numpy.core is a deprecated alias in NumPy 2
+            return getattr(importlib.import_module(f"numpy._core.{key}"), name)
+        except ImportError:
+            return getattr(importlib.import_module(f"numpy.core.{key}"), name)
+
+
 def load_gt_tapvid(path: str | Path) -> GroundTruth:
     """Read TAP-Vid ground truth from a pickle (one video) and convert it to our pixel convention.
 
@@ -197,14 +224,15 @@ def load_gt_tapvid(path: str | Path) -> GroundTruth:
     JPEG/PNG-encoded frames, as in TAP-Vid-Kinetics), ``points`` (P, F, 2)
     normalised (x, y) and ``occluded`` (P, F) bool; or a dict (or list) of such
     videos, of which there must be exactly one. Every frame of every point is
-    known; ``point_id`` is the row index 0..P-1. Unpickling runs code from the
-    file: read only pickles you trust.
+    known; ``point_id`` is the row index 0..P-1. The pickle is read by
+    :class:`_ArraysOnly`: a file naming anything but NumPy arrays, dicts, lists,
+    strings and numbers is refused before any of it runs.
     """
     path = Path(path)
     try:
         with path.open("rb") as f:
-            data = pickle.load(f)
-    except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ImportError, ValueError) as error:
+            data = _ArraysOnly(f).load()
+    except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ImportError, ValueError, TypeError) as error:
         raise read_error(error, f"{path}: cannot read the TAP-Vid pickle ({error})") from None
     video = _single_video(data, path)
     for key in ("video", "points", "occluded"):

@@ -168,4 +168,7 @@ def open_frames(settings: FrameSettings, path: str | Path) -> FolderSource | Vid
         raise MissingInput(f"{path}: no such file or folder")
     if path.is_dir():
         return FolderSource(path, settings)
+    if path.is_fifo() or path.is_socket():  # OpenCV's open would block in C, deaf to Ctrl-C and SIGTERM
+        raise CondtrackError(f"{path}: not a regular file (a {'named pipe' if path.is_fifo() else 'socket'}); "
+                             "give a video file or a folder of frames")
     return VideoSource(path)

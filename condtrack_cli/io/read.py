@@ -4,7 +4,8 @@ A CSV holds no frame count: its tracks span frames 0 .. the last frame that has
 a row. Nor does it hold queries: a point's query is taken to be its first row
 (frame 0 once backward tracking filled the frames before the query). A CSV
 whose header is not the schema's exact header line, with a negative frame or a
-second row for one (point_id, frame), and an HDF5 file of an unknown
+second row for one (point_id, frame), with frames far past what its rows fill
+(``CELLS_PER_ROW``), and an HDF5 file of an unknown
 ``schema_version``, are refused (docs/schema.md). h5py is imported
 only by the functions that open an HDF5 file (start-up time, issue 13).
 """
@@ -25,12 +26,29 @@ from condtrack_cli.registry import BUILTIN_METHOD_CODES, method_codes
 from condtrack_cli.types import Queries, SequenceInfo, Tracks
 
 
+#: A CSV's tracks become dense (P, F) arrays, about 100 bytes a cell: a file is refused when that would take more
+#: than ``CELLS_PER_ROW`` cells per row and more than ``DENSE_SLACK`` cells in all (two rows with frame 100000000
+#: took 9.5 GiB). A condtrack CSV has one row per cell; one with only the visible rows has a few cells per row.
+CELLS_PER_ROW = 16
+DENSE_SLACK = 2**20
+
+
 def repeated_rows(point_id: np.ndarray, frame: np.ndarray) -> np.ndarray:
     """(N,) bool: the rows whose (point_id, frame) pair an earlier row already has."""
     order = np.lexsort((frame, point_id))  # stable: the first of equal rows stays unmarked
     repeated = np.zeros(len(frame), bool)
     repeated[order[1:]] = (point_id[order[1:]] == point_id[order[:-1]]) & (frame[order[1:]] == frame[order[:-1]])
     return repeated
+
+
+def refuse_sparse(path: Path, frames: np.ndarray, lines: np.ndarray, n_points: int) -> None:
+    """CondtrackError when (``n_points``, last frame + 1) arrays would have more cells than the ``frames`` (N,) rows
+    fill (``CELLS_PER_ROW``), naming the line of the last frame; called before the arrays are made."""
+    if len(frames) and n_points * (int(frames.max()) + 1) > max(CELLS_PER_ROW * len(frames), DENSE_SLACK):
+        last = int(np.argmax(frames))
+        raise CondtrackError(
+            f"{path}: line {lines[last]} has frame {int(frames[last])}, but the file has {len(frames)} rows for "
+            f"{n_points} points: too few to fill its frames (a row per point and frame is expected)")
 
 
 def number_column(cells: np.ndarray, dtype: type, lines: np.ndarray, path: Path, name: str) -> np.ndarray:
@@ -79,6 +97,7 @@ def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
     method = _codes_of(path, table[:, 8])
     point_ids, first_row, point_index = np.unique(ids, return_index=True, return_inverse=True)
     n_points, n_frames = len(point_ids), (int(frames.max()) + 1 if len(frames) else 0)
+    refuse_sparse(path, frames, line_of, n_points)
     xy = np.full((n_points, n_frames, 2), np.nan)
     cov = np.full((n_points, n_frames, 2, 2), np.nan)
     vis = np.zeros((n_points, n_frames), bool)

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from condtrack_cli import COORDINATES, SCHEMA_VERSION, __version__
+from condtrack_cli.errors import write_error
 from condtrack_cli.io.atomic import atomic_path
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.interface import OutputSettings
@@ -118,8 +119,11 @@ EXTRA_ATTRIBUTES = {
 }
 
 def write_tracks(tracks: Tracks, path: str | Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
-    """Write ``tracks`` to ``path`` (.csv, .h5 or .hdf5), atomically: the file is whole or absent."""
+    """Write ``tracks`` to ``path`` (.csv, .h5 or .hdf5), atomically: the file is whole or absent (a full disk included)."""
     path = Path(path)
     writer = get("output", track_format(path, "output")).factory
     with atomic_path(path) as temporary:
-        writer(tracks, temporary, info, meta, settings)
+        try:
+            writer(tracks, temporary, info, meta, settings)
+        except OSError as error:  # h5py reports a full disk as OSError with errno ENOSPC, as Python does
+            raise write_error(path, error) from None

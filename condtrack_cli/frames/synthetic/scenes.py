@@ -48,14 +48,23 @@ class Scene:
 
 # --------------------------------------------------------------------------- assembly
 
+#: Largest frame side (px): rendering a frame takes about 100 bytes a pixel (1.7 GB at 4096 x 4096).
+MAX_SIDE = 4096
+#: Largest frames x width x height of a scene, whose frames are held in memory (uint8: 1 GiB).
+MAX_PIXELS = 2**30
+
 
 def _start(seed: int, size: tuple[int, int], n_frames: int, noise: float):
-    """Check the common arguments; return W, H, the scene rng and the noise rng."""
+    """Check the common arguments (before anything is allocated); return W, H, the scene rng and the noise rng."""
     w, h = (int(v) for v in size)
     if w < 4 * BORDER_MARGIN or h < 4 * BORDER_MARGIN:
         raise ValueError(f"size {w}x{h} is too small (at least {4 * BORDER_MARGIN} px each way)")
+    if w > MAX_SIDE or h > MAX_SIDE:
+        raise ValueError(f"size {w}x{h} is too large (at most {MAX_SIDE} px each way)")
     if n_frames < 2:
         raise ValueError(f"n_frames must be at least 2, not {n_frames}")
+    if w * h * n_frames > MAX_PIXELS:
+        raise ValueError(f"{n_frames} frames of {w}x{h} px are too many (at most {MAX_PIXELS} pixels in all)")
     if not noise >= 0:
         raise ValueError(f"noise must be >= 0, not {noise}")
     scene_seed, noise_seed = np.random.SeedSequence(seed).spawn(2)
