@@ -223,19 +223,18 @@ class Cancelled(CondtrackError):
 
 
 class _StopCheck:
-    """A Dask task's per-frame callback (``track_input``'s ``progress_factory``): raises :class:`Cancelled` once the
-    batch's stop Event is set, asked at most every ``STOP_CHECK_SECONDS`` and at the end, before the output is written."""
+    """A Dask task's ``progress(done, total)`` callback for ``track_input``: raises :class:`Cancelled` once the
+    batch's stop Event is set, asked at most every ``STOP_CHECK_SECONDS`` and after the last frame, before the output
+    is written."""
 
     def __init__(self, event_name: str):
         from distributed import Event
 
         self.event, self.next_check = Event(event_name), 0.0
 
-    def __call__(self, *_frame) -> None:
-        if time.monotonic() >= self.next_check:
-            self.close()
-
-    def close(self) -> None:
+    def __call__(self, done: int, total: int) -> None:
+        if done < total and time.monotonic() < self.next_check:
+            return
         self.next_check = time.monotonic() + STOP_CHECK_SECONDS
         if self.event.is_set():
             raise Cancelled("cancelled: the batch was interrupted")
@@ -245,7 +244,7 @@ def run_job(job: BatchJob) -> ClipRecord:
     """Track one input into its output (in whichever process runs it); a bad input gives a ``failed`` record."""
     use_threads(job.threads)
     started = time.perf_counter()
-    stop_check = (lambda *_passes: _StopCheck(job.stop_event)) if job.stop_event else None
+    stop_check = _StopCheck(job.stop_event) if job.stop_event else None
     try:
         summary = track_input(job.input, job.config, job.queries_path, job.output, job.seed, stop_check)
         digest = queries_hash(job.queries_path)

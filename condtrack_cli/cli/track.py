@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import logging
 import os
 from pathlib import Path
 
@@ -13,7 +12,7 @@ from condtrack_cli import MAX_SEED, registry
 from condtrack_cli.batch_command import batch_options, refuse_batch_options, requested_threads, run_batch
 from condtrack_cli.cli.options import overlay_options, overlay_style
 from condtrack_cli.config import Config, config_keys, load_config
-from condtrack_cli.errors import read_error
+from condtrack_cli.errors import read_error, warn
 from condtrack_cli.io.atomic import refuse_overwriting_inputs
 from condtrack_cli.progress import Progress, show_warnings
 from condtrack_cli.threads import threads_per_job, use_threads
@@ -85,7 +84,7 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     if not in_batch:
         threads, warning = threads_per_job(requested_threads(threads), 1)
         if warning:
-            logging.getLogger("condtrack").warning(warning)
+            warn(warning)
         use_threads(threads)
         refuse_overwriting_inputs({"-o": output_path, "--overlay": overlay_path},
                                   {"INPUT": inputs[0], "-p": queries_path, "-c": config_path})
