@@ -74,6 +74,12 @@ class Tracks:
         return self.result.cov
 
     @property
+    def dof(self) -> np.ndarray:
+        """(P, F) float64 degrees of freedom nu > 2 of each row's bivariate Student-t predictive distribution
+        (covariance ``cov``, scale matrix ``cov (nu - 2) / nu``); inf: Gaussian; NaN where no state."""
+        return self.result.dof
+
+    @property
     def visible(self) -> np.ndarray:
         """(P, F) bool."""
         return self.result.visible
@@ -96,7 +102,7 @@ class Tracks:
         >>> t.to_csv("occlusion.csv")
         >>> from pathlib import Path
         >>> Path("occlusion.csv").read_text().splitlines()[0]
-        'point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method'
+        'point_id,frame,x,y,cov_xx,cov_xy,cov_yy,dof,visible,method'
         """
         self._write(path, "csv")
 
