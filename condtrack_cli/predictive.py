@@ -7,9 +7,36 @@ Shared by the evaluation (coverage), the overlays (95 % ellipses) and ``--max-st
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from condtrack_cli.types import Tracks
+
+
+def major_std(cov: np.ndarray) -> np.ndarray:
+    """(...) standard deviation (px) along the major axis of each covariance (..., 2, 2) px^2: the square root of its
+    larger eigenvalue; inf where a variance is infinite (unbounded), NaN where the covariance is NaN (none)."""
+    undefined = np.isnan(cov).any(axis=(-2, -1))
+    unbounded = np.isinf(cov).any(axis=(-2, -1)) & ~undefined
+    finite = ~undefined & ~unbounded
+    a, b, c = (np.where(finite, cov[..., i, j], 0.0) for i, j in ((0, 0), (0, 1), (1, 1)))
+    std = np.sqrt(np.maximum((a + c) / 2 + np.hypot((a - c) / 2, b), 0.0))
+    return np.where(unbounded, np.inf, np.where(undefined, np.nan, std))
+
+
+def trusted(tracks: "Tracks", max_std: float | None) -> "Tracks":
+    """``tracks`` with the rows whose ``major_std`` exceeds ``max_std`` px written as not visible (``--max-std``).
+
+    A row without a covariance (NaN: the method has none) keeps its visibility; an unbounded one is not visible.
+    None: ``tracks`` as they are.
+    """
+    if max_std is None:
+        return tracks
+    return dataclasses.replace(tracks, visible=tracks.visible & ~(major_std(tracks.cov) > max_std))
 
 
 def chi2_2dof(level: float | np.ndarray) -> float | np.ndarray:

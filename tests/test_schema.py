@@ -27,7 +27,8 @@ from conftest import REPO
 SCHEMA = (REPO / "docs" / "schema.md").read_text(encoding="utf-8")
 P, F = 3, 4
 #: The metadata ``condtrack track`` passes to the writer.
-TRACK_META = {"config": "filter:\n  method: clf\n", "method": "clf", "seed": 0, "config_hash": "0" * 64, "queries_hash": "", "smoothed": False}
+TRACK_META = {"config": "filter:\n  method: clf\n", "method": "clf", "seed": 0, "config_hash": "0" * 64, "queries_hash": "", "smoothed": False,
+              "max_std": float("inf")}
 
 
 def doc_table(heading: str) -> list[dict[str, str]]:
