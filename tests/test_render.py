@@ -60,7 +60,7 @@ def make_tracks() -> Tracks:
     visible[1, 3:6] = False
     method = np.where(has, np.array([2, 2, 0, 0])[:, None], -1).astype(np.int8)
     queries = Queries(np.arange(p, dtype=np.int64), np.array([0, 0, 0, 2]), xy[np.arange(p), [0, 0, 0, 2]])
-    dof = np.where(has, 5.0, np.nan)
+    dof = np.where(has, np.array([4.0, 6.0, np.inf, np.inf])[:, None], np.nan)  # stk rows: Gaussian
     return Tracks(queries, xy, cov, dof, visible, method, np.full_like(xy, np.nan), np.full_like(cov, np.nan))
 
 
@@ -261,6 +261,7 @@ def test_info_prints_what_the_file_holds(tmp_path):
     visible_rows = 8 + 8 + 8 + 6
     assert f"{(visible_rows - 3) / visible_rows:.1%} of {visible_rows} rows" in out
     assert "query frames:      0 .. 2" in out
+    assert "distribution:      Student-t per row, dof 4 .. 6 (median 5) on 53.3% of rows, Gaussian elsewhere" in out
     assert "measurements:      stored" in out and "particles:         not stored" in out
     assert "method:            clf" in out and "seed:              0" in out
     assert out.endswith("config (resolved):\n  x: 1\n")
