@@ -606,23 +606,24 @@ def test_cli_plot_without_matplotlib_is_one_error_line(files, tmp_path, monkeypa
     assert result.stdout == "" and not out.exists()
 
 
-def test_bench_coverage_table_checks_issue_12_targets():
-    """The bench's coverage table (``bench/versus_lk.py``): one row per set and method, one check per target.
+def test_bench_coverage_table_checks_issue_27_targets():
+    """The bench's coverage table (``bench/versus_lk.py``): one row per set and method, the Student-t and the Gaussian
+    readings, one check per target of issue 27 (on the Student-t reading).
 
     Set a is calibrated on every level; set b's auto has a core too wide (cov50 0.80) and its cnlf failed to run.
     """
     from condtrack_cli.evaluate.bench.versus_lk import coverage_table
 
-    calibrated = {"cov50": 0.5, "cov90": 0.9, "cov95": 0.95, "cov99": 0.99, "cov_finite": 1.0, "nees": 2.0,
-                  "cov50_rescaled": 0.5}
+    calibrated = {"cov50": 0.5, "cov90": 0.9, "cov95": 0.95, "cov99": 0.99, "cov50_gauss": 0.7, "cov90_gauss": 0.93,
+                  "cov95_gauss": 0.96, "cov99_gauss": 0.98, "cov_finite": 1.0, "nees": 2.0, "cov50_rescaled": 0.5}
     wide = dict(calibrated, cov50=0.8)
     per_set = {"a": {m: (calibrated, 1.0) for m in ("auto", "clf", "cnlf")},
                "b": {"auto": (wide, 1.0), "clf": (calibrated, 1.0), "cnlf": (None, "exit 1")}}
     lines = coverage_table(per_set, "set")
-    assert "| a | clf | 0.500 | 0.900 | 0.950 | 0.990 | 1.000 | 2.000 | 0.500 |" in lines
+    assert "| a | clf | 0.500 | 0.900 | 0.950 | 0.990 | 0.700 | 0.930 | 0.960 | 0.980 | 1.000 | 2.000 | 0.500 |" in lines
     assert "| b | cnlf | failed |" in lines
     checks = [line for line in lines if line.startswith("- [")]
-    assert checks[0] == "- [ ] FAIL: cov50 in [0.45, 0.55] on 4 of 5 runs; not on: b auto 0.800"
+    assert checks[0] == "- [ ] FAIL: cov50 in [0.42, 0.62] on 4 of 5 runs; not on: b auto 0.800"
     assert all(line.startswith("- [x] pass") for line in checks[1:]) and len(checks) == 5
 
 

@@ -105,7 +105,7 @@ def real_video_table(work: Path, shared: Path, max_points: int = 300, extra: tup
         clf, lk = _delta(per_set[name], "clf"), _delta(per_set[name], "lk")
         checks.append(_check(clf >= lk, f"{name}: clf {clf:.3f} >= LK {lk:.3f}"))
     return lines + ["", "Done-when checks of issue 11 (real video):", ""] + checks + [
-        "", "Coverage of the reported covariance on the same runs (issue 12; `condtrack eval` keys):", ""
+        "", "Coverage of each row's predictive distribution on the same runs (issues 12 and 27; `condtrack eval` keys):", ""
     ] + coverage_table(per_set, "set")
 
 
@@ -180,7 +180,7 @@ def synthetic_versus_lk_table(work: Path, extra: tuple[str, ...] = ()) -> list[s
         checks.append(_check(auto >= lk, f"{scene}: auto {auto:.3f} >= LK {lk:.3f}"))
     checks += _better_filter_checks(per_scene)
     return lines + ["", "Done-when checks of issue 11 (synthetic scenes):", ""] + checks + [
-        "", "Coverage of the reported covariance on the same runs (issue 12; `condtrack eval` keys):", ""
+        "", "Coverage of each row's predictive distribution on the same runs (issues 12 and 27; `condtrack eval` keys):", ""
     ] + coverage_table(per_scene, "scene")
 
 
