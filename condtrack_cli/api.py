@@ -30,11 +30,12 @@ from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.io.write import write_tracks
 from condtrack_cli.hashes import config_hash, queries_hash
+from condtrack_cli.predictive import trusted
 from condtrack_cli.progress import Progress
 from condtrack_cli.queries import queries_from_rows, read_queries
 
 #: File attributes of a run (beyond the sequence's) that :meth:`Tracks.to_hdf5` writes and ``read_tracks`` keeps.
-RUN_ATTRIBUTES = ("config", "method", "seed", "config_hash", "queries_hash", "smoothed")
+RUN_ATTRIBUTES = ("config", "method", "seed", "config_hash", "queries_hash", "smoothed", "max_std")
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,12 @@ class Tracks:
         return self.result.cov
 
     @property
+    def dof(self) -> np.ndarray:
+        """(P, F) float64 degrees of freedom nu > 2 of each row's bivariate Student-t predictive distribution
+        (covariance ``cov``, scale matrix ``cov (nu - 2) / nu``); inf: Gaussian; NaN where no state."""
+        return self.result.dof
+
+    @property
     def visible(self) -> np.ndarray:
         """(P, F) bool."""
         return self.result.visible
@@ -96,7 +103,7 @@ class Tracks:
         >>> t.to_csv("occlusion.csv")
         >>> from pathlib import Path
         >>> Path("occlusion.csv").read_text().splitlines()[0]
-        'point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method'
+        'point_id,frame,x,y,cov_xx,cov_xy,cov_yy,dof,visible,method'
         """
         self._write(path, "csv")
 
@@ -158,16 +165,18 @@ def track_sequence(
         def on_frame(index: int, estimate: types.FrameEstimate) -> None:
             progress(next(done), total)
 
-    result = pipeline.run(source, info, config, queries, seed=seed, on_frame=on_frame)
+    max_std = config.output.max_std
+    result = trusted(pipeline.run(source, info, config, queries, seed=seed, on_frame=on_frame), max_std)
     attributes = {"config": config.to_yaml(), "method": config.method, "seed": seed,
-                  "config_hash": config_hash(config), "queries_hash": queries_hash(given), "smoothed": config.smooth}
+                  "config_hash": config_hash(config), "queries_hash": queries_hash(given), "smoothed": config.smooth,
+                  "max_std": float("inf") if max_std is None else float(max_std)}
     return Tracks(result, info, config, attributes), source
 
 
 def track(
     source: str | Path, queries: str | Path | np.ndarray | None = None, method: str | None = None,
     config: str | Path | Mapping[str, Any] | None = None, seed: int = 0,
-    progress: bool | Callable[[int, int], None] = False,
+    progress: bool | Callable[[int, int], None] = False, max_std: float | None = None,
 ) -> Tracks:
     """Track points through ``source``, a folder of frames or a video file.
 
@@ -178,6 +187,8 @@ def track(
     like ``condtrack track -c`` (same errors). seed: 0 .. ``MAX_SEED``. progress: True for the command line's
     progress bar (on a terminal), or a callable ``progress(done, total)`` called after
     each frame read (``total``: the forward pass's frames plus the backward pass's).
+    max_std: rows whose standard deviation along their covariance's major axis exceeds this many
+    pixels are reported not visible (``output.max_std``, ``condtrack track --max-std``).
     Raises :class:`condtrack_cli.CondtrackError` on bad input (a bad argument value or type: its subclasses
     ``InvalidArgument``, a ValueError, and ``InvalidArgumentType``, a TypeError); what the command
     line prints as ``warning:`` lines are :class:`condtrack_cli.CondtrackWarning` warnings.
@@ -191,7 +202,8 @@ def track(
     if not (isinstance(progress, bool) or callable(progress)):
         raise InvalidArgumentType(f"progress: expected True, False or a callable(done, total), got {type(progress).__name__}")
     with Progress() if progress is True else contextlib.nullcontext(progress or None) as callback:
-        tracks, _ = track_sequence(source, load_config(config, [], method), queries, seed, callback)
+        overrides = [] if max_std is None else [f"output.max_std={plain(max_std)}"]
+        tracks, _ = track_sequence(source, load_config(config, overrides, method), queries, seed, callback)
     return tracks
 
 

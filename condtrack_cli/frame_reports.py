@@ -31,7 +31,7 @@ from condtrack_cli.errors import CondtrackError
 from condtrack_cli.types import FrameEstimate, Tracks
 
 #: The fields of a report, each (P, ...) per frame.
-FIELDS = ("xy", "cov", "visible", "z", "R", "method")
+FIELDS = ("xy", "cov", "dof", "visible", "z", "R", "method")
 
 #: Reports stacked into one block on disk (500 points: 3 MB a block).
 BLOCK_FRAMES = 64

@@ -117,7 +117,7 @@ def merge_backward(forward: Tracks, backward: Tracks) -> Tracks:
 
     return Tracks(
         queries=forward.queries, xy=combine(forward.xy, backward.xy), cov=combine(forward.cov, backward.cov),
-        visible=combine(forward.visible, backward.visible), method=combine(forward.method, backward.method),
+        dof=combine(forward.dof, backward.dof),        visible=combine(forward.visible, backward.visible), method=combine(forward.method, backward.method),
         z=combine(forward.z, backward.z), R=combine(forward.R, backward.R), extras=forward.extras,
     )
 

@@ -9,8 +9,9 @@ the method that produced the row (``PALETTE``, legend in the top-left corner):
 
 - its trail: segments joining its last ``trail`` positions (frames k-trail+1..k),
   darker with age;
-- its 95% covariance ellipse (chi-square, 2 degrees of freedom: 5.991) where the
-  covariance is finite; none where it is NaN (the method has none) or infinite
+- the 95% ellipse of its predictive distribution (the Student-t of its covariance
+  and ``dof``, ``predictive.py``; chi-square with 2 degrees of freedom, 5.991, for
+  a Gaussian row) where the covariance is finite; none where it is NaN (the method has none) or infinite
   (no information); a diamond instead where the ellipse's semi-major axis is
   over the cap (by default half the frame's diagonal: an ellipse larger than the frame);
 - a filled dot when visible, a hollow X when not visible or when the covariance
@@ -39,11 +40,12 @@ import numpy as np
 
 from condtrack_cli.errors import CondtrackError, warn, write_error
 from condtrack_cli.io.atomic import atomic_path, check_writable, publish, staging_folder
+from condtrack_cli.predictive import ellipse_m2
 from condtrack_cli.registry import method_codes
 from condtrack_cli.types import Tracks
 
-#: chi-square quantile of 0.95 with 2 degrees of freedom: the 95% ellipse is nu^T cov^-1 nu <= this.
-CHI2_95_2DOF = 5.991
+#: Level of the ellipses drawn.
+ELLIPSE_LEVEL = 0.95
 #: Fractional bits of the fixed-point coordinates passed to cv2 (1/16 px).
 SHIFT = 4
 #: BGR colour per method name; a method not listed (one registered by another package) is drawn in ``OTHER_COLOUR``.
@@ -97,10 +99,10 @@ def most_moving(xy: np.ndarray, count: int | None) -> np.ndarray:
     return chosen
 
 
-def ellipse_axes(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Semi-axes and orientation of the 95% ellipses of finite covariances.
+def ellipse_axes(cov: np.ndarray, dof: np.ndarray | float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """Semi-axes and orientation of the 95% ellipses of the rows' distributions (finite covariances).
 
-    cov: (K, 2, 2) px^2, finite and symmetric. Returns ``axes`` (K, 2) in px,
+    cov: (K, 2, 2) px^2, finite and symmetric; dof: (K,) Student-t nu (inf: Gaussian). Returns ``axes`` (K, 2) in px,
     (major, minor), and ``angle`` (K,) in radians of the major axis, from +x
     towards +y (clockwise on screen, as cv2 measures it). Negative eigenvalues
     (round-off) are clipped to 0.
@@ -108,12 +110,13 @@ def ellipse_axes(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
     mean, radius = (a + c) / 2, np.hypot((a - c) / 2, b)
     eigen = np.clip(np.stack([mean + radius, mean - radius], axis=-1), 0.0, None)
-    return np.sqrt(CHI2_95_2DOF * eigen), 0.5 * np.arctan2(2 * b, a - c)
+    bound = ellipse_m2(ELLIPSE_LEVEL, np.where(np.isnan(dof), np.inf, dof))
+    return np.sqrt(np.asarray(bound)[..., None] * eigen), 0.5 * np.arctan2(2 * b, a - c)
 
 
-def ellipse_outlines(centre: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """(K, V, 2) closed outlines of the 95% ellipses around ``centre`` (K, 2) of ``cov`` (K, 2, 2)."""
-    axes, angle = ellipse_axes(cov)
+def ellipse_outlines(centre: np.ndarray, cov: np.ndarray, dof: np.ndarray | float = np.inf) -> np.ndarray:
+    """(K, V, 2) closed outlines of the 95% ellipses around ``centre`` (K, 2) of ``cov`` (K, 2, 2), ``dof`` (K,)."""
+    axes, angle = ellipse_axes(cov, dof)
     t = np.linspace(0.0, 2 * np.pi, _ELLIPSE_VERTICES, endpoint=False)
     u, v = axes[:, :1] * np.cos(t), axes[:, 1:] * np.sin(t)  # (K, V) in the ellipse's own frame
     cos, sin = np.cos(angle)[:, None], np.sin(angle)[:, None]
@@ -172,7 +175,7 @@ class Overlay:
         """Frame ``k`` (H, W) uint8 grey -> (H, W, 3) uint8 BGR with the overlay drawn."""
         image = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
         t = self.tracks
-        xy, cov, method = t.xy[:, k], t.cov[:, k], t.method[:, k]
+        xy, cov, dof, method = t.xy[:, k], t.cov[:, k], t.dof[:, k], t.method[:, k]
         has = np.isfinite(xy).all(axis=-1) & self.shown
         unbounded = has & np.isinf(cov).any(axis=(1, 2))
         with_ellipse = has & np.isfinite(cov).all(axis=(1, 2)) & (self.style.ellipses != "none")
@@ -180,13 +183,13 @@ class Overlay:
             with_ellipse &= t.visible[:, k]
         cap = self.style.ellipse_cap or np.hypot(*image.shape[:2]) / 2
         oversized = with_ellipse.copy()
-        oversized[with_ellipse] = ellipse_axes(cov[with_ellipse])[0][:, 0] > cap
+        oversized[with_ellipse] = ellipse_axes(cov[with_ellipse], dof[with_ellipse])[0][:, 0] > cap
         with_ellipse &= ~oversized
         hidden = has & (~t.visible[:, k] | unbounded)
         if self.particles is not None:
             self._draw_particles(image, np.asarray(self.particles[:, k], dtype=np.float64)[self.shown])
         self._draw_trails(image, k)
-        outlines = ellipse_outlines(xy[with_ellipse], cov[with_ellipse])
+        outlines = ellipse_outlines(xy[with_ellipse], cov[with_ellipse], dof[with_ellipse])
         diamonds = xy[oversized][:, None, :] + _DIAMOND_HALF * np.array([[0, -1], [1, 0], [0, 1], [-1, 0]])
         crosses = xy[hidden][:, None, None, :] + _CROSS_HALF * np.array([[[-1, -1], [1, 1]], [[-1, 1], [1, -1]]])
         dots = _fixed(xy[has & ~hidden])

@@ -85,6 +85,8 @@ class FrameEstimate:
 
     xy: (P, 2) position, NaN where the point has no state yet.
     cov: (P, 2, 2) posterior covariance in px^2; NaN when the method has none.
+    dof: (P,) degrees of freedom nu > 2 of the row's bivariate Student-t predictive
+       distribution (covariance ``cov``); inf: Gaussian.
     visible: (P,) bool.
     z: (P, 2) raw measurement (NaN where none was made).
     R: (P, 2, 2) measurement covariance in px^2; +inf on the diagonal when the
@@ -95,6 +97,7 @@ class FrameEstimate:
 
     xy: np.ndarray
     cov: np.ndarray
+    dof: np.ndarray
     visible: np.ndarray
     z: np.ndarray
     R: np.ndarray
@@ -107,6 +110,9 @@ class Tracks:
 
     xy: (P, F, 2) float64, NaN where the point has no state.
     cov: (P, F, 2, 2) float64 px^2, NaN where undefined, inf where unbounded.
+    dof: (P, F) float64 degrees of freedom nu > 2 of each row's Student-t
+       predictive distribution (``FrameEstimate``); inf: Gaussian; NaN where the
+       point has no state.
     visible: (P, F) bool.
     method: (P, F) int8 index into ``registry.method_codes()``, -1 where no state.
     z, R: raw measurements, (P, F, 2) and (P, F, 2, 2), as in ``FrameEstimate``.
@@ -120,6 +126,7 @@ class Tracks:
     queries: Queries
     xy: np.ndarray
     cov: np.ndarray
+    dof: np.ndarray
     visible: np.ndarray
     method: np.ndarray
     z: np.ndarray

@@ -47,7 +47,7 @@ def test_track_writes_every_contract_field(shifted_folder, tmp_path):
     assert lines[0] == ",".join(CSV_COLUMNS)
     assert len(lines) == 1 + p * 6
     first = lines[1].split(",")
-    assert first[4:7] == ["nan", "nan", "nan"] and first[8] == "stk"
+    assert first[4:7] == ["nan", "nan", "nan"] and first[7:] == ["inf", "1", "stk"]  # stk: no covariance, Gaussian
     tracks, _ = read_tracks(csv)
     from_h5, _ = read_tracks(h5)
     np.testing.assert_allclose(tracks.xy, from_h5.xy, atol=1e-6)
@@ -168,7 +168,7 @@ def test_stk_accuracy_on_the_samples(tmp_path, sample, floor):
 
 def _track_csv(path, rows):
     """A condtrack track CSV with ``rows`` of (point_id, frame, x, y), covariances I, visible, clf."""
-    path.write_text(",".join(CSV_COLUMNS) + "\n" + "".join(f"{p},{f},{x},{y},1,0,1,1,clf\n" for p, f, x, y in rows))
+    path.write_text(",".join(CSV_COLUMNS) + "\n" + "".join(f"{p},{f},{x},{y},1,0,1,inf,1,clf\n" for p, f, x, y in rows))
     return path
 
 

@@ -41,12 +41,13 @@ def make_tracks(n_frames: int = F) -> Tracks:
     visible[2, :2] = False
     z = xy + rng.normal(0, 0.5, xy.shape)
     queries = Queries(np.array([3, 7, 11, 20]), np.array([0, 0, 2, 0]), xy[np.arange(P), [0, 0, 2, 0]])
-    return Tracks(queries, xy, cov, visible, method, z, cov * 2)
+    dof = np.where(np.isfinite(xy).all(axis=-1), 3.0 + rng.random((P, n_frames)) * 10, np.nan)
+    return Tracks(queries, xy, cov, dof, visible, method, z, cov * 2)
 
 
 def edited(tracks: Tracks, **arrays: np.ndarray) -> Tracks:
     """``tracks`` with some arrays replaced."""
-    fields = {name: getattr(tracks, name) for name in ("queries", "xy", "cov", "visible", "method", "z", "R")}
+    fields = {name: getattr(tracks, name) for name in ("queries", "xy", "cov", "dof", "visible", "method", "z", "R")}
     return Tracks(**{**fields, **arrays})
 
 
@@ -228,7 +229,7 @@ def test_visibility_flips_are_allowed_up_to_the_given_number(golden, tmp_path):
 def test_points_frames_queries_and_methods_are_compared(golden, tmp_path):
     tracks = make_tracks()
     fewer = Tracks(Queries(tracks.queries.point_id[:3], tracks.queries.frame[:3], tracks.queries.xy[:3]),
-                   *(getattr(tracks, name)[:3] for name in ("xy", "cov", "visible", "method", "z", "R")))
+                   *(getattr(tracks, name)[:3] for name in ("xy", "cov", "dof", "visible", "method", "z", "R")))
     result = compare_tracks(tracks, fewer)
     assert not result.agree and result.counts["points"] == 1
     first = result.top[0]

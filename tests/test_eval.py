@@ -24,7 +24,8 @@ from condtrack_cli.evaluate import (
     tapvid_to_pixels,
 )
 from condtrack_cli.cli.eval import eval_command
-from condtrack_cli.evaluate.metrics import chi2_2dof
+from condtrack_cli.evaluate.metrics import COVERAGE_LEVELS, calibration_metrics, chi2_2dof, coverage_key
+from condtrack_cli.predictive import ellipse_level, ellipse_m2
 from condtrack_cli.types import Queries, Tracks
 
 NAN, INF = np.nan, np.inf
@@ -62,6 +63,8 @@ EXPECTED = {
         "cov50": 1 / 3, "cov90": 2 / 3, "cov95": 2 / 3, "cov99": 2 / 3, "nees": (2.25 + 100) / 2, "cov_finite": 2 / 3,
         # m2 sorted 0 (infinite), 2.25, 100: k = 100 / 5.991 puts all 3 inside at 95 %; at 50 %: m2 <= 23.1 (2 of 3)
         "cov50_rescaled": 2 / 3,
+        # no dof given: every row Gaussian, the two readings agree
+        "cov50_gauss": 1 / 3, "cov90_gauss": 2 / 3, "cov95_gauss": 2 / 3, "cov99_gauss": 2 / 3,
         "n_points": 2, "n_frames": 4,
     },
     "strided": {
@@ -74,6 +77,8 @@ EXPECTED = {
         # p1 f0 has no prediction: not counted, and not finite (2 finite of 4 GT-visible scored rows)
         "cov50": 1 / 3, "cov90": 2 / 3, "cov95": 2 / 3, "cov99": 2 / 3, "nees": (2.25 + 100) / 2, "cov_finite": 0.5,
         "cov50_rescaled": 2 / 3,
+        # no dof given: every row Gaussian, the two readings agree
+        "cov50_gauss": 1 / 3, "cov90_gauss": 2 / 3, "cov95_gauss": 2 / 3, "cov99_gauss": 2 / 3,
         "n_points": 2, "n_frames": 4,
     },
 }
@@ -167,6 +172,38 @@ def test_coverage_inside():
     np.testing.assert_array_equal(inside, [1, 0, 1, 1, 0, 0, 0, 0])
     m2 = [e @ np.linalg.solve(correlated, e) for e in error[:2]]
     assert m2 == pytest.approx([8 / 3, 18]) and m2[0] <= chi2_2dof(0.95) < m2[1]
+
+
+@pytest.mark.parametrize("dof", [2.5, 3.0, 4.0, 10.0, 1e6])
+def test_student_t_ellipse_bounds_are_fisher_quantiles(dof):
+    """Issue 27: with scale C (nu - 2) / nu, d^T C^-1 d nu / (2 (nu - 2)) ~ F(2, nu); ellipse_level inverts the bound."""
+    from scipy import stats
+
+    levels = np.array(COVERAGE_LEVELS)
+    bound = ellipse_m2(levels, dof)
+    np.testing.assert_allclose(bound, 2 * (dof - 2) / dof * stats.f.ppf(levels, 2, dof), rtol=1e-9)
+    np.testing.assert_allclose(ellipse_level(bound, dof), levels, rtol=1e-12)
+    np.testing.assert_allclose(ellipse_m2(levels, np.inf), chi2_2dof(levels), rtol=1e-15)
+    if dof == 1e6:  # nu large: the Gaussian's bounds
+        np.testing.assert_allclose(bound, chi2_2dof(levels), rtol=1e-4)
+
+
+def test_coverage_of_student_t_errors_is_the_level_under_their_dof_only():
+    """Errors drawn from bivariate Student-t laws (nu 3 and 6, known covariances): the coverage under each row's
+    dof is the level within 0.01 (20000 rows); the Gaussian reading of the same rows holds far more than half at
+    50 % and less than 99 % at 99 %."""
+    from scipy import stats
+
+    rng = np.random.default_rng(7)
+    n = 20000
+    cov = np.array([[4.0, 1.5], [1.5, 2.0]])
+    error = np.concatenate([stats.multivariate_t(shape=cov * (nu - 2) / nu, df=nu).rvs(n // 2, random_state=rng)
+                            for nu in (3.0, 6.0)])
+    dof = np.repeat([3.0, 6.0], n // 2)
+    out = calibration_metrics(error[None], np.broadcast_to(cov, (1, n, 2, 2)), np.ones((1, n), bool), dof[None])
+    for level in COVERAGE_LEVELS:
+        assert out[coverage_key(level)] == pytest.approx(level, abs=0.01), level
+    assert out["cov50_gauss"] > 0.6 and out["cov99_gauss"] < 0.985
 
 
 @pytest.mark.parametrize("level", [0.5, 0.9, 0.95, 0.99])
@@ -344,7 +381,8 @@ def make_tracks(point_id, xy, visible, cov=None) -> Tracks:
     first = has.argmax(axis=1)
     cov = np.broadcast_to(np.eye(2), (n_points, n_frames, 2, 2)).copy() if cov is None else cov
     queries = Queries(np.asarray(point_id, np.int64), first, xy[np.arange(n_points), first])
-    return Tracks(queries, xy, cov, np.asarray(visible, bool), np.where(has, 2, -1).astype(np.int8),
+    return Tracks(queries, xy, cov, np.where(has, np.inf, np.nan), np.asarray(visible, bool),
+                  np.where(has, 2, -1).astype(np.int8),
                   np.full_like(xy, NAN), np.full_like(cov, NAN))
 
 
@@ -568,23 +606,24 @@ def test_cli_plot_without_matplotlib_is_one_error_line(files, tmp_path, monkeypa
     assert result.stdout == "" and not out.exists()
 
 
-def test_bench_coverage_table_checks_issue_12_targets():
-    """The bench's coverage table (``bench/versus_lk.py``): one row per set and method, one check per target.
+def test_bench_coverage_table_checks_issue_27_targets():
+    """The bench's coverage table (``bench/versus_lk.py``): one row per set and method, the Student-t and the Gaussian
+    readings, one check per target of issue 27 (on the Student-t reading).
 
     Set a is calibrated on every level; set b's auto has a core too wide (cov50 0.80) and its cnlf failed to run.
     """
     from condtrack_cli.evaluate.bench.versus_lk import coverage_table
 
-    calibrated = {"cov50": 0.5, "cov90": 0.9, "cov95": 0.95, "cov99": 0.99, "cov_finite": 1.0, "nees": 2.0,
-                  "cov50_rescaled": 0.5}
+    calibrated = {"cov50": 0.5, "cov90": 0.9, "cov95": 0.95, "cov99": 0.99, "cov50_gauss": 0.7, "cov90_gauss": 0.93,
+                  "cov95_gauss": 0.96, "cov99_gauss": 0.98, "cov_finite": 1.0, "nees": 2.0, "cov50_rescaled": 0.5}
     wide = dict(calibrated, cov50=0.8)
     per_set = {"a": {m: (calibrated, 1.0) for m in ("auto", "clf", "cnlf")},
                "b": {"auto": (wide, 1.0), "clf": (calibrated, 1.0), "cnlf": (None, "exit 1")}}
     lines = coverage_table(per_set, "set")
-    assert "| a | clf | 0.500 | 0.900 | 0.950 | 0.990 | 1.000 | 2.000 | 0.500 |" in lines
+    assert "| a | clf | 0.500 | 0.900 | 0.950 | 0.990 | 0.700 | 0.930 | 0.960 | 0.980 | 1.000 | 2.000 | 0.500 |" in lines
     assert "| b | cnlf | failed |" in lines
     checks = [line for line in lines if line.startswith("- [")]
-    assert checks[0] == "- [ ] FAIL: cov50 in [0.45, 0.55] on 4 of 5 runs; not on: b auto 0.800"
+    assert checks[0] == "- [ ] FAIL: cov50 in [0.42, 0.62] on 4 of 5 runs; not on: b auto 0.800"
     assert all(line.startswith("- [x] pass") for line in checks[1:]) and len(checks) == 5
 
 

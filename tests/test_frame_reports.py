@@ -26,7 +26,7 @@ def random_report(rng: np.random.Generator, n_points: int) -> FrameEstimate:
     xy[0] = np.nan
     cov = rng.normal(size=(n_points, 2, 2))
     cov[1] = np.inf
-    return FrameEstimate(xy=xy, cov=cov, visible=rng.random(n_points) < 0.5, z=rng.normal(size=(n_points, 2)),
+    return FrameEstimate(xy=xy, cov=cov, dof=3.0 + rng.random(n_points), visible=rng.random(n_points) < 0.5, z=rng.normal(size=(n_points, 2)),
                          R=rng.normal(size=(n_points, 2, 2)), method=rng.integers(-1, 3, n_points).astype(np.int8))
 
 

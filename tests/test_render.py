@@ -60,7 +60,8 @@ def make_tracks() -> Tracks:
     visible[1, 3:6] = False
     method = np.where(has, np.array([2, 2, 0, 0])[:, None], -1).astype(np.int8)
     queries = Queries(np.arange(p, dtype=np.int64), np.array([0, 0, 0, 2]), xy[np.arange(p), [0, 0, 0, 2]])
-    return Tracks(queries, xy, cov, visible, method, np.full_like(xy, np.nan), np.full_like(cov, np.nan))
+    dof = np.where(has, np.array([4.0, 6.0, np.inf, np.inf])[:, None], np.nan)  # stk rows: Gaussian
+    return Tracks(queries, xy, cov, dof, visible, method, np.full_like(xy, np.nan), np.full_like(cov, np.nan))
 
 
 def write_h5(path, width=WIDTH, height=HEIGHT, n_frames=N_FRAMES):
@@ -77,8 +78,12 @@ def raw_frames(folder) -> list[np.ndarray]:
 def test_ellipse_axes_are_the_95_percent_semi_axes():
     cov = np.array([[[4.0, 0.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 9.0]], [[2.0, 1.0], [1.0, 2.0]]])
     axes, angle = ellipse_axes(cov)
-    np.testing.assert_allclose(axes, np.sqrt(5.991 * np.array([[4, 1], [9, 1], [3, 1]])), rtol=1e-12)
+    np.testing.assert_allclose(axes, np.sqrt(5.991465 * np.array([[4, 1], [9, 1], [3, 1]])), rtol=1e-6)
     np.testing.assert_allclose(angle, [0.0, np.pi / 2, np.pi / 4], atol=1e-12)
+    # issue 27: a Student-t row's ellipse, nu = 3: (nu - 2)((1 - 0.95)^(-2/nu) - 1) = 20^(2/3) - 1 = 6.368
+    axes, _ = ellipse_axes(cov, np.array([3.0, np.inf, np.nan]))
+    np.testing.assert_allclose(axes[0], np.sqrt((20 ** (2 / 3) - 1) * np.array([4, 1])), rtol=1e-12)
+    np.testing.assert_allclose(axes[1:], np.sqrt(5.991465 * np.array([[9, 1], [3, 1]])), rtol=1e-6)
 
 
 def test_overlay_video_has_the_input_length_and_size_and_marks_the_points(frames_folder, tmp_path):
@@ -215,7 +220,7 @@ def test_render_from_csv_pads_to_the_input(frames_folder, tmp_path):
 
     tracks = make_tracks()
     csv = tmp_path / "t.csv"
-    short = Tracks(tracks.queries, tracks.xy[:, :5], tracks.cov[:, :5], tracks.visible[:, :5],
+    short = Tracks(tracks.queries, tracks.xy[:, :5], tracks.cov[:, :5], tracks.dof[:, :5], tracks.visible[:, :5],
                    tracks.method[:, :5], tracks.z[:, :5], tracks.R[:, :5])
     csv.write_text(csv_text(short))
     result = CliRunner().invoke(cli, ["render", str(csv), str(frames_folder), "-o", str(tmp_path / "o.mp4")])
@@ -237,7 +242,7 @@ def test_render_warns_about_a_csv_with_visible_positions_outside_the_frame(frame
     xy[0, 6:, 0] = [WIDTH - 0.75, WIDTH + 10.0]  # inside the last pixel, then 10 px out
     for name, positions, warned in (("out.csv", xy, True), ("in.csv", tracks.xy, False)):
         csv = tmp_path / name
-        csv.write_text(csv_text(Tracks(tracks.queries, positions, tracks.cov, tracks.visible, tracks.method,
+        csv.write_text(csv_text(Tracks(tracks.queries, positions, tracks.cov, tracks.dof, tracks.visible, tracks.method,
                                        tracks.z, tracks.R)))
         result = CliRunner().invoke(cli, ["render", str(csv), str(frames_folder), "-o", str(tmp_path / "o.mp4")])
         assert result.exit_code == 0, result.output
@@ -256,6 +261,7 @@ def test_info_prints_what_the_file_holds(tmp_path):
     visible_rows = 8 + 8 + 8 + 6
     assert f"{(visible_rows - 3) / visible_rows:.1%} of {visible_rows} rows" in out
     assert "query frames:      0 .. 2" in out
+    assert "distribution:      Student-t per row, dof 4 .. 6 (median 5) on 53.3% of rows, Gaussian elsewhere" in out
     assert "measurements:      stored" in out and "particles:         not stored" in out
     assert "method:            clf" in out and "seed:              0" in out
     assert out.endswith("config (resolved):\n  x: 1\n")

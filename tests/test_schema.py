@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import subprocess
 import sys
@@ -16,7 +17,8 @@ from condtrack_cli.cli import cli
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.io.read import read_tracks
-from condtrack_cli.io.write import CSV_COLUMNS, FLOAT_FORMATS, write_tracks
+from condtrack_cli.io.compare import compare_tracks
+from condtrack_cli.io.write import CSV_COLUMNS, FLOAT_FORMATS, csv_text, write_tracks
 from condtrack_cli.registry import BUILTIN_METHOD_CODES
 from condtrack_cli.types import Queries, SequenceInfo, Tracks
 
@@ -25,7 +27,8 @@ from conftest import REPO
 SCHEMA = (REPO / "docs" / "schema.md").read_text(encoding="utf-8")
 P, F = 3, 4
 #: The metadata ``condtrack track`` passes to the writer.
-TRACK_META = {"config": "filter:\n  method: clf\n", "method": "clf", "seed": 0, "config_hash": "0" * 64, "queries_hash": "", "smoothed": False}
+TRACK_META = {"config": "filter:\n  method: clf\n", "method": "clf", "seed": 0, "config_hash": "0" * 64, "queries_hash": "", "smoothed": False,
+              "max_std": float("inf")}
 
 
 def doc_table(heading: str) -> list[dict[str, str]]:
@@ -65,7 +68,8 @@ def small_tracks() -> Tracks:
     cov[2, :] = np.nan
     method = np.array([[2, 2, 3, 3], [-1, 1, 1, 1], [0, 0, 0, 0]], np.int8)
     visible = np.array([[1, 1, 0, 1], [0, 1, 1, 1], [1, 0, 1, 1]], bool)
-    return Tracks(queries, xy, cov, visible, method, xy + 0.1, cov.copy())
+    dof = np.where(np.isfinite(xy).all(axis=-1), np.array([3.5, 12.25, np.inf])[:, None], np.nan)
+    return Tracks(queries, xy, cov, dof, visible, method, xy + 0.1, cov.copy())
 
 
 def write_small(path, settings: OutputSettings | None = None) -> None:
@@ -114,8 +118,9 @@ def test_csv_columns_formats_and_header_match_the_doc(tmp_path):
     rows = [line.split(",") for line in lines[1:-1]]
     assert all(len(row) == len(CSV_COLUMNS) for row in rows)
     assert len(rows) == P * F - 1  # point 9 has no state on frame 0
-    assert {row[8] for row in rows} <= set(BUILTIN_METHOD_CODES)
+    assert {row[9] for row in rows} <= set(BUILTIN_METHOD_CODES)
     assert rows[2][4:7] == ["inf", "inf", "inf"] and rows[-1][4:7] == ["nan", "nan", "nan"]
+    assert rows[0][7] == "3.5" and rows[4][7] == "12.25" and rows[-1][7] == "inf"
 
 
 def test_method_codes_match_the_doc(tmp_path):
@@ -187,9 +192,31 @@ def test_an_hdf5_of_another_schema_version_is_refused_naming_both(tmp_path):
     write_small(path)
     with h5py.File(path, "r+") as f:
         f.attrs["schema_version"] = "0.9"
-    message = f"schema_version '0.9' is not supported (this condtrack reads '{SCHEMA_VERSION}')"
+    message = "schema_version '0.9' is not supported (this condtrack reads '1.0' and '2.0')"
     with pytest.raises(CondtrackError, match=re.escape(message)):
         read_tracks(path)
+
+
+def test_files_of_schema_1_0_are_read_as_gaussian(tmp_path):
+    """Issue 27: a schema 1.0 file (no dof) is read with dof inf where a row exists, NaN elsewhere, and compares
+    equal to a 2.0 file of the same tracks written Gaussian."""
+    tracks = small_tracks()
+    gaussian = dataclasses.replace(tracks, dof=np.where(np.isfinite(tracks.xy).all(axis=-1), np.inf, np.nan))
+    old_h5, new_h5, old_csv = tmp_path / "old.h5", tmp_path / "new.h5", tmp_path / "old.csv"
+    write_small(old_h5)
+    with h5py.File(old_h5, "r+") as f:
+        f.attrs["schema_version"] = "1.0"
+        del f["tracks/dof"]
+    write_tracks(gaussian, new_h5, SequenceInfo("frames/", 64, 48, F, 0.0), TRACK_META, OutputSettings())
+    lines = csv_text(tracks).splitlines()
+    column = CSV_COLUMNS.index("dof")
+    old_csv.write_text("\n".join(",".join(c for i, c in enumerate(line.split(",")) if i != column) for line in lines) + "\n")
+    assert old_csv.read_text().splitlines()[0] == "point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method"
+    for old in (old_h5, old_csv):
+        read, _ = read_tracks(old)  # a CSV lists its points by id
+        order = [list(tracks.queries.point_id).index(i) for i in read.queries.point_id]
+        assert np.array_equal(read.dof, gaussian.dof[order], equal_nan=True), old
+    assert compare_tracks(read_tracks(old_h5)[0], read_tracks(new_h5)[0]).agree
 
 
 def test_an_hdf5_whose_shapes_depart_from_the_schema_is_refused(tmp_path):

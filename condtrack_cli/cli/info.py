@@ -47,6 +47,7 @@ def info_command(tracks_path: str) -> None:
         ("fps", fps_text),
         ("points", f"{n_points}" + (f" ({split})" if split else "")),
         ("visible", visible),
+        ("distribution", _distribution(tracks.dof[started])),
         ("query frames", queries),
         ("measurements", measurements),
         ("particles", particles),
@@ -57,3 +58,14 @@ def info_command(tracks_path: str) -> None:
         click.echo(f"{key + ':':19s}{value}")
     config = meta.get("config")
     click.echo("config (resolved):" + ("".join(f"\n  {line}" for line in config.splitlines()) if config else " n/a"))
+
+
+def _distribution(dof) -> str:
+    """The rows' predictive distribution (docs/schema.md) from their (N,) dof: Student-t with its range, or Gaussian."""
+    import numpy as np
+
+    student = dof[np.isfinite(dof)]
+    if not student.size:
+        return "Gaussian (dof inf)" if dof.size else "n/a"
+    share = "" if student.size == dof.size else f" on {student.size / dof.size:.1%} of rows, Gaussian elsewhere"
+    return f"Student-t per row, dof {student.min():.3g} .. {student.max():.3g} (median {np.median(student):.3g}){share}"

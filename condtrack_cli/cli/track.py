@@ -48,6 +48,8 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 @overlay_options
 @click.option("--seed", type=click.IntRange(min=0, max=MAX_SEED), default=0, show_default=True,
               help="Seed of every random draw.")
+@click.option("--max-std", type=click.FloatRange(min=0, min_open=True), metavar="PIXELS",
+              help="Write a row as not visible when the std along its covariance's major axis exceeds PIXELS (output.max_std).")
 @click.option("--smooth", is_flag=True, help="Two-way smoothing: each frame's estimate also uses the later frames (filter.smooth).")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", shell_complete=_complete_key, help="Override one config value, e.g. motion.levels=3 (repeatable).")
 @click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
@@ -57,7 +59,7 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 @batch_options
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar, summary or warnings on stderr.")
 def track(inputs, config_path, queries_path, method, output_path, overlay_path, overlay_points, ellipses, ellipse_cap,
-          seed, smooth, overrides, list_path, out_dir, batch_format, jobs, quiet, threads, **batch) -> None:
+          seed, max_std, smooth, overrides, list_path, out_dir, batch_format, jobs, quiet, threads, **batch) -> None:
     """Track points through INPUT, a folder of frames or a video file.
 
     Several INPUTs (or --from-list) make a batch: one output per input in
@@ -80,7 +82,8 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         usage.fail("several inputs need --out-dir")
     if not in_batch:
         refuse_batch_options({**batch, "jobs": jobs})
-    config: Config = load_config(config_path, list(overrides) + (["filter.smooth=true"] if smooth else []), method)
+    flags = (["filter.smooth=true"] if smooth else []) + ([f"output.max_std={max_std!r}"] if max_std is not None else [])
+    config: Config = load_config(config_path, list(overrides) + flags, method)
     if not in_batch:
         threads, warning = threads_per_job(requested_threads(threads), 1)
         if warning:

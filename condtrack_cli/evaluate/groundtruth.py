@@ -73,7 +73,7 @@ class Aligned:
     point_id: (P,) int64 sorted. query_frame: (P,) int64, the prediction's query
     frame (HDF5: its /queries; CSV: the point's first row).
     pred_xy: (P, F, 2), NaN where no position; pred_visible: (P, F) bool;
-    pred_cov: (P, F, 2, 2) px^2.
+    pred_cov: (P, F, 2, 2) px^2; pred_dof: (P, F) Student-t nu (inf: Gaussian).
     gt_xy: (P, F, 2); gt_visible, gt_known: (P, F) bool (as in ``GroundTruth``).
     missing_ids: (M,) int64 GT points that the prediction does not have.
     """
@@ -83,6 +83,7 @@ class Aligned:
     pred_xy: np.ndarray
     pred_visible: np.ndarray
     pred_cov: np.ndarray
+    pred_dof: np.ndarray
     gt_xy: np.ndarray
     gt_visible: np.ndarray
     gt_known: np.ndarray
@@ -281,6 +282,7 @@ def align(pred: Tracks, gt: GroundTruth) -> Aligned:
         pred_xy=pred_xy,
         pred_visible=_pad_frames(pred.visible[pred_index], n_frames, False),
         pred_cov=_pad_frames(pred.cov[pred_index], n_frames, np.nan),
+        pred_dof=_pad_frames(pred.dof[pred_index], n_frames, np.nan),
         gt_xy=_pad_frames(gt.gt_xy[gt_index], n_frames, np.nan),
         gt_visible=_pad_frames(gt.visible[gt_index], n_frames, False),
         gt_known=_pad_frames(gt.known[gt_index], n_frames, False),

@@ -28,8 +28,12 @@ Additions of ours:
   when more than half of those frames have no prediction).
 - ``cov50``, ``cov90``, ``cov95``, ``cov99`` (coverage at level p): the fraction
   of GT-visible scored frames whose GT position lies in the predicted ellipse of
-  level p, {d : d^T C^-1 d <= chi2.ppf(p, 2)} with d the error and C the
-  predicted covariance; a calibrated covariance gives p. A covariance with an
+  level p of the row's distribution: the bivariate Student-t with covariance C
+  and nu = ``dof`` degrees of freedom (docs/schema.md), {d : d^T C^-1 d <=
+  (nu - 2) ((1 - p)^(-2 / nu) - 1)} with d the error, which for nu = inf is the
+  Gaussian's {d : d^T C^-1 d <= chi2.ppf(p, 2)}; a calibrated distribution gives
+  p. ``cov50_gauss`` ... ``cov99_gauss``: the same with every row read as
+  Gaussian (the reading of a tool that ignores ``dof``). A covariance with an
   infinite entry is unbounded and contains every position. Frames without a
   prediction, with a NaN covariance, or with a finite covariance that is not
   positive definite have no ellipse and are not counted. Null when no frame is
@@ -65,6 +69,8 @@ from typing import Literal
 
 import numpy as np
 
+from condtrack_cli.predictive import chi2_2dof, ellipse_m2
+
 #: Distance thresholds in pixels.
 THRESHOLDS = (1, 2, 4, 8, 16)
 
@@ -73,11 +79,6 @@ QUERY_MODES = ("first", "strided")
 
 #: Probability masses of the coverage ellipses reported (key ``cov<100 p>``).
 COVERAGE_LEVELS = (0.5, 0.9, 0.95, 0.99)
-
-
-def chi2_2dof(level: float | np.ndarray) -> float | np.ndarray:
-    """chi2.ppf(level, 2): the chi-square law with 2 degrees of freedom has CDF 1 - exp(-q / 2), so -2 ln(1 - p)."""
-    return -2.0 * np.log1p(-np.asarray(level, float)) if isinstance(level, np.ndarray) else -2.0 * math.log1p(-level)
 
 
 def coverage_key(level: float) -> str:
@@ -91,6 +92,7 @@ METRIC_KEYS = (
     + tuple(f"jaccard_{x}" for x in THRESHOLDS)
     + ("median_err",)
     + tuple(coverage_key(p) for p in COVERAGE_LEVELS)
+    + tuple(coverage_key(p) + "_gauss" for p in COVERAGE_LEVELS)
     + ("nees", "cov_finite", "cov50_rescaled", "n_points", "n_frames")
 )
 
@@ -143,35 +145,42 @@ def normalised_error(error: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np
     return unbounded, bounded, m2
 
 
-def coverage_inside(error: np.ndarray, cov: np.ndarray, level: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
-    """Whether each error lies in the ellipse of level ``level`` of its covariance.
+def coverage_inside(error: np.ndarray, cov: np.ndarray, level: float = 0.95,
+                    dof: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Whether each error lies in the ellipse of level ``level`` of its row's distribution.
 
     error: (..., 2) predicted minus GT position, NaN where there is no prediction.
-    cov: (..., 2, 2) predicted covariance in px^2.
+    cov: (..., 2, 2) predicted covariance in px^2. dof: (...) Student-t nu (None: Gaussian, as nu = inf).
 
     Returns ``(counted, inside)``, both (...) bool: ``counted`` where an ellipse
     exists (finite error, and a covariance with an infinite entry or finite and
-    positive definite); ``inside`` where counted and d^T C^-1 d <= chi2.ppf(level, 2)
+    positive definite); ``inside`` where counted and d^T C^-1 d <= ``ellipse_m2(level, dof)``
     (always, for an infinite covariance).
     """
     unbounded, bounded, m2 = normalised_error(error, cov)
-    return unbounded | bounded, unbounded | (bounded & (m2 <= chi2_2dof(level)))
+    bound = ellipse_m2(level, np.inf if dof is None else np.where(bounded, dof, np.inf))
+    return unbounded | bounded, unbounded | (bounded & (m2 <= bound))
 
 
-def calibration_metrics(error: np.ndarray, cov: np.ndarray | None, rows: np.ndarray) -> dict[str, float | None]:
+def calibration_metrics(error: np.ndarray, cov: np.ndarray | None, rows: np.ndarray,
+                        dof: np.ndarray | None = None) -> dict[str, float | None]:
     """The coverage keys, ``nees``, ``cov_finite`` and ``cov50_rescaled`` (module docstring) over the ``rows`` (P, F) bool.
 
-    error: (P, F, 2) predicted minus GT (NaN where no prediction); cov: (P, F, 2, 2) or None (all null).
+    error: (P, F, 2) predicted minus GT (NaN where no prediction); cov: (P, F, 2, 2) or None (all null);
+    dof: (P, F) the rows' Student-t nu, or None (every row Gaussian).
     """
-    keys = [coverage_key(p) for p in COVERAGE_LEVELS] + ["nees", "cov_finite", "cov50_rescaled"]
+    keys = ([coverage_key(p) for p in COVERAGE_LEVELS] + [coverage_key(p) + "_gauss" for p in COVERAGE_LEVELS]
+            + ["nees", "cov_finite", "cov50_rescaled"])
     if cov is None:
         return dict.fromkeys(keys)
     unbounded, bounded, m2 = normalised_error(error, cov)
     unbounded, bounded = unbounded & rows, bounded & rows
     counted = int((unbounded | bounded).sum())
-    out = {
-        coverage_key(p): _ratio((unbounded | (bounded & (m2 <= chi2_2dof(p)))).sum(), counted) for p in COVERAGE_LEVELS
-    }
+    nu = np.inf if dof is None else np.where(bounded & ~np.isnan(dof), dof, np.inf)
+    out = {coverage_key(p): _ratio((unbounded | (bounded & (m2 <= ellipse_m2(p, nu)))).sum(), counted)
+           for p in COVERAGE_LEVELS}
+    out.update({coverage_key(p) + "_gauss": _ratio((unbounded | (bounded & (m2 <= chi2_2dof(p)))).sum(), counted)
+                for p in COVERAGE_LEVELS})
     out["nees"] = float(m2[bounded].mean()) if bounded.any() else None
     out["cov_finite"] = _ratio(bounded.sum(), rows.sum())
     out["cov50_rescaled"] = rescaled_coverage(np.where(bounded, m2, 0.0)[unbounded | bounded], 0.5, 0.95)
@@ -200,6 +209,7 @@ def tapvid_metrics(
     gt_known: np.ndarray,
     query_frame: np.ndarray,
     mode: Literal["first", "strided"],
+    pred_dof: np.ndarray | None = None,
 ) -> dict[str, float | int | None]:
     """TAP-Vid metrics of one sequence, pooled over points and frames (see the module docstring).
 
@@ -210,6 +220,7 @@ def tapvid_metrics(
     gt_visible: (P, F) bool GT visibility. gt_known: (P, F) bool, False where the
     GT says nothing about the frame (never scored).
     query_frame: (P,) int each point's query frame. mode: ``'first'`` or ``'strided'``.
+    pred_dof: (P, F) Student-t nu of each row (inf: Gaussian), or None (every row Gaussian).
 
     Returns a dict with exactly the keys of ``METRIC_KEYS``: floats in [0, 1]
     (``median_err`` in pixels) or None where not computable; ``n_points`` = P and
@@ -242,6 +253,6 @@ def tapvid_metrics(
     median = float(np.median(errors)) if errors.size else math.inf
     out["median_err"] = median if math.isfinite(median) else None
 
-    out.update(calibration_metrics(pred_xy - gt_xy, pred_cov, gt_vis))
+    out.update(calibration_metrics(pred_xy - gt_xy, pred_cov, gt_vis, pred_dof))
     out["n_points"], out["n_frames"] = int(n_points), int(n_frames)
     return out

@@ -46,6 +46,7 @@ def opencv_lk(folder: str | Path, queries: Queries, fb_threshold: float = 1.0) -
         prev = image
     method = np.where(np.isfinite(xy[..., 0]), method_code("stk"), -1).astype(np.int8)
     return Tracks(
-        queries=queries, xy=xy, cov=np.full((p, f, 2, 2), np.nan), visible=visible, method=method,
+        queries=queries, xy=xy, cov=np.full((p, f, 2, 2), np.nan), dof=np.where(np.isfinite(xy[..., 0]), np.inf, np.nan),
+        visible=visible, method=method,
         z=np.full((p, f, 2), np.nan), R=np.full((p, f, 2, 2), np.nan),
     )

@@ -2,7 +2,9 @@
 
 The reliability diagram plots, for every level p in (0, 1), the share of evaluated
 rows whose ground truth lies in the predicted ellipse of level p against p: a
-calibrated covariance follows the diagonal, an overconfident one lies below it.
+calibrated distribution follows the diagonal, an overconfident one lies below it.
+Two curves: under each row's Student-t (``dof``) and with every row read as a
+Gaussian of the same covariance.
 The histogram is that of the Mahalanobis distance sqrt(d^T C^-1 d) of the errors
 with a finite covariance, against its law for a calibrated 2-D Gaussian error
 (Rayleigh, density r exp(-r^2 / 2)).
@@ -14,7 +16,8 @@ import numpy as np
 
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.evaluate.groundtruth import Aligned
-from condtrack_cli.evaluate.metrics import COVERAGE_LEVELS, chi2_2dof, normalised_error, scored_frames
+from condtrack_cli.evaluate.metrics import COVERAGE_LEVELS, normalised_error, scored_frames
+from condtrack_cli.predictive import ellipse_level
 from condtrack_cli.io.atomic import atomic_path
 
 #: Levels of the reliability curve.
@@ -24,14 +27,18 @@ CURVE_LEVELS = np.linspace(0.01, 0.99, 99)
 HISTOGRAM_MAX = 8.0
 
 
-def reliability_curve(data: Aligned, mode: str) -> tuple[np.ndarray, np.ndarray, int]:
-    """(levels (L,), observed coverage (L,), counted rows) over the GT-visible scored rows with an ellipse."""
+def reliability_curve(data: Aligned, mode: str, gaussian: bool = False) -> tuple[np.ndarray, np.ndarray, int]:
+    """(levels (L,), observed coverage (L,), counted rows) over the GT-visible scored rows with an ellipse.
+
+    Under each row's Student-t, or (``gaussian``) with every row read as a Gaussian.
+    """
     rows = scored_frames(data.query_frame, data.gt_visible.shape[1], mode) & data.gt_known & data.gt_visible
     unbounded, bounded, m2 = normalised_error(data.pred_xy - data.gt_xy, data.pred_cov)
     unbounded, bounded = unbounded & rows, bounded & rows
     counted = int((unbounded | bounded).sum())
-    finite_m2 = np.sort(m2[bounded])
-    inside = np.searchsorted(finite_m2, chi2_2dof(CURVE_LEVELS), side="right") + unbounded.sum()
+    dof = np.inf if gaussian else np.where(np.isnan(data.pred_dof), np.inf, data.pred_dof)[bounded]
+    levels = np.sort(ellipse_level(m2[bounded], dof))
+    inside = np.searchsorted(levels, CURVE_LEVELS, side="right") + unbounded.sum()
     return CURVE_LEVELS, inside / max(counted, 1), counted
 
 
@@ -50,6 +57,7 @@ def write_plot(data: Aligned, mode: str, path: str, title: str) -> None:
     if data.pred_cov is None:
         raise CondtrackError("--plot: the predictions hold no covariance (nothing to calibrate)")
     levels, observed, counted = reliability_curve(data, mode)
+    _, observed_gauss, _ = reliability_curve(data, mode, gaussian=True)
     if counted == 0:
         raise CondtrackError("--plot: no GT-visible scored row has a predicted ellipse")
     rows = scored_frames(data.query_frame, data.gt_visible.shape[1], mode) & data.gt_known & data.gt_visible
@@ -58,9 +66,11 @@ def write_plot(data: Aligned, mode: str, path: str, title: str) -> None:
 
     figure, (left, right) = plt.subplots(1, 2, figsize=(8, 3.6), dpi=80)
     left.plot([0, 1], [0, 1], color="0.6", linestyle="--", label="calibrated")
-    left.plot(levels, observed, color="C0", label=f"observed ({counted} rows)")
+    left.plot(levels, observed, color="C0", label=f"Student-t per row ({counted} rows)")
+    left.plot(levels, observed_gauss, color="C2", label="read as Gaussian")
     marks = np.array(COVERAGE_LEVELS)
     left.plot(marks, np.interp(marks, levels, observed), "o", color="C0")
+    left.plot(marks, np.interp(marks, levels, observed_gauss), "o", color="C2")
     left.set(xlim=(0, 1), ylim=(0, 1), xlabel="ellipse level p", ylabel="share of truth inside", title="reliability")
     left.legend(loc="upper left", fontsize="small")
     bins = np.linspace(0, HISTOGRAM_MAX, 33)

@@ -16,6 +16,6 @@ def score_tracks(tracks: Tracks, truth: GroundTruth, query_mode: str = "first") 
     check_queries(tracks, truth)
     result = tapvid_metrics(
         data.pred_xy, data.pred_visible, data.pred_cov, data.gt_xy, data.gt_visible, data.gt_known,
-        data.query_frame, query_mode,
+        data.query_frame, query_mode, data.pred_dof,
     )
     return result, data

@@ -189,6 +189,10 @@ class AutoTracker(Tracker):
         """The shared error model's covariance (``calibration.py``); ``cov`` is what is handed over."""
         return self.errors.reported.copy()
 
+    def reported_dof(self) -> np.ndarray:
+        """The error model's Student-t degrees of freedom (``calibration.py``)."""
+        return self.errors.dof
+
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         self.cnlf.start_members(index, frame, self.xy[index])
         self.on_cnlf[index] = True

@@ -53,7 +53,7 @@ class Tracker:
             self.method_code[new] = method_code(self.method)
             self._start(new, frame)
         return FrameEstimate(
-            xy=self.xy.copy(), cov=self.reported_cov(), visible=self.visible.copy(),
+            xy=self.xy.copy(), cov=self.reported_cov(), dof=self.reported_dof(), visible=self.visible.copy(),
             z=self.z.copy(), R=self.R.copy(), method=self.method_code.copy(),
         )
 
@@ -78,6 +78,10 @@ class Tracker:
     def reported_cov(self) -> np.ndarray:
         """(P, 2, 2) the covariance reported for the current frame: the filter's own unless overridden."""
         return self.cov.copy()
+
+    def reported_dof(self) -> np.ndarray:
+        """(P,) the Student-t degrees of freedom reported for the current frame: inf (Gaussian) unless overridden."""
+        return np.where(np.isfinite(self.xy).all(axis=1), np.inf, np.nan)
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         """Initialise the filter state of points ``index`` (positions already set)."""

@@ -162,6 +162,10 @@ class CLFTracker(MDRTracker):
         """The error model's covariance (``calibration.py``), not the one the gate uses."""
         return self.errors.reported.copy()
 
+    def reported_dof(self) -> np.ndarray:
+        """The error model's Student-t degrees of freedom (``calibration.py``)."""
+        return self.errors.dof
+
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion) -> None:
         x_prev, found_before = self.xy[index].copy(), self.visible[index].copy()
         x_global, sigma_global, A_global = self._predict(index, motion)

@@ -209,6 +209,10 @@ class CNLFTracker(Tracker):
         """The error model's covariance (``calibration.py``), not the particles' spread alone."""
         return self.errors.reported.copy()
 
+    def reported_dof(self) -> np.ndarray:
+        """The error model's Student-t degrees of freedom (``calibration.py``)."""
+        return self.errors.dof
+
     def _report(self, index: np.ndarray) -> None:
         """xy and cov of points ``index``: the weighted mean and covariance of the current particles."""
         self.xy[index], self.cov[index] = weighted_moments(self.particles[index], self.log_w[index])

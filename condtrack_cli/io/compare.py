@@ -9,6 +9,7 @@ results, frames compared):
 
 - ``x``, ``y``, ``z_x``, ``z_y``: absolute tolerance ``atol_px`` (px);
 - ``cov_*``, ``R_*``: relative tolerance ``rtol_cov`` plus ``COV_ATOL`` px^2;
+- ``dof``: relative tolerance ``rtol_cov`` (a file of schema 1.0 has dof inf);
 - ``visible``: the number of differing cells, allowed up to ``visible_flips``;
 - ``method``: exact.
 
@@ -43,10 +44,10 @@ COV_ATOL = 1e-12
 #: Every field, in report order (structure first, then per-cell values).
 HDF5_FIELDS = (
     "points", "n_frames", "query_frame", "query_x", "query_y", "state", "x", "y", "visible", "method",
-    "cov_xx", "cov_xy", "cov_yx", "cov_yy", "z_x", "z_y", "R_xx", "R_xy", "R_yx", "R_yy",
+    "cov_xx", "cov_xy", "cov_yx", "cov_yy", "dof", "z_x", "z_y", "R_xx", "R_xy", "R_yx", "R_yy",
 )
 #: The fields a CSV holds: its columns (a point is listed when it has a row).
-CSV_FIELDS = ("points", "state", "x", "y", "visible", "method", "cov_xx", "cov_xy", "cov_yy")
+CSV_FIELDS = ("points", "state", "x", "y", "visible", "method", "cov_xx", "cov_xy", "cov_yy", "dof")
 
 #: Field suffix -> index in the last axes of a (..., 2) vector or (..., 2, 2) matrix.
 _COORDINATES = {"x": (0,), "y": (1,)}
@@ -205,6 +206,7 @@ def compare_tracks(
     for prefix, array_a, array_b, atol, rtol, entries in (
         ("", a.xy, b.xy, atol_px, 0.0, _COORDINATES),
         ("cov_", a.cov, b.cov, COV_ATOL, rtol_cov, _ENTRIES),
+        ("dof", a.dof, b.dof, 0.0, rtol_cov, {"": ()}),
         ("z_", a.z, b.z, atol_px, 0.0, _COORDINATES),
         ("R_", a.R, b.R, COV_ATOL, rtol_cov, _ENTRIES),
     ):

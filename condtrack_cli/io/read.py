@@ -6,7 +6,8 @@ a row. Nor does it hold queries: a point's query is taken to be its first row
 whose header is not the schema's exact header line, with a negative frame or a
 second row for one (point_id, frame), with frames far past what its rows fill
 (``CELLS_PER_ROW``), and an HDF5 file of an unknown
-``schema_version``, are refused (docs/schema.md). h5py is imported
+``schema_version``, are refused (docs/schema.md). Files of schema 1.0 (no
+``dof`` column or dataset) are read as Gaussian: dof inf where a row exists. h5py is imported
 only by the functions that open an HDF5 file (start-up time, issue 13).
 """
 
@@ -18,10 +19,10 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from condtrack_cli import SCHEMA_VERSION
+from condtrack_cli import READABLE_SCHEMA_VERSIONS
 from condtrack_cli.errors import CondtrackError, MissingInput, plain, warn
 from condtrack_cli.io.formats import is_hdf5, track_format
-from condtrack_cli.io.write import CSV_COLUMNS
+from condtrack_cli.io.write import CSV_COLUMNS, CSV_COLUMNS_1
 from condtrack_cli.registry import BUILTIN_METHOD_CODES, method_codes
 from condtrack_cli.types import Queries, SequenceInfo, Tracks
 
@@ -74,43 +75,50 @@ def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
         lines = path.read_text(encoding="ascii").splitlines()
     except (OSError, UnicodeDecodeError) as error:
         raise CondtrackError(f"{path}: cannot read the track file ({error})") from None
-    if not lines or tuple(lines[0].split(",")) != CSV_COLUMNS:
+    header = tuple(lines[0].split(",")) if lines else ()
+    if header not in (CSV_COLUMNS, CSV_COLUMNS_1):
         raise CondtrackError(f"{path}: not a condtrack CSV (expected the header {','.join(CSV_COLUMNS)})")
     numbered = [(number, line.split(",")) for number, line in enumerate(lines[1:], start=2) if line]
-    wrong = next(((number, row) for number, row in numbered if len(row) != len(CSV_COLUMNS)), None)
+    wrong = next(((number, row) for number, row in numbered if len(row) != len(header)), None)
     if wrong is not None:
-        raise CondtrackError(f"{path}: line {wrong[0]} has {len(wrong[1])} fields, expected {len(CSV_COLUMNS)}")
+        raise CondtrackError(f"{path}: line {wrong[0]} has {len(wrong[1])} fields, expected {len(header)}")
     line_of = np.array([number for number, _ in numbered], dtype=np.int64)  # (N,) file line of each row
-    table = np.array([row for _, row in numbered], dtype=str).reshape(-1, len(CSV_COLUMNS))
-    ids, frames, x, y, cov_xx, cov_xy, cov_yy, visible = (
-        number_column(table[:, i], np.int64 if name in ("point_id", "frame", "visible") else np.float64, line_of,
-                      path, name)
-        for i, name in enumerate(CSV_COLUMNS[:8])
-    )
-    values = np.column_stack([x, y, cov_xx, cov_xy, cov_yy])
+    table = np.array([row for _, row in numbered], dtype=str).reshape(-1, len(header))
+    column = {
+        name: number_column(table[:, i], np.int64 if name in ("point_id", "frame", "visible") else np.float64,
+                            line_of, path, name)
+        for i, name in enumerate(header[:-1])
+    }
+    ids, frames, visible = column["point_id"], column["frame"], column["visible"]
+    row_dof = column.get("dof", np.full(len(ids), np.inf))
+    bad_dof = ~((row_dof > 2) | np.isnan(row_dof))
+    values = np.column_stack([column[name] for name in ("x", "y", "cov_xx", "cov_xy", "cov_yy")])
     for bad, what in ((frames < 0, "frame is negative"), ((visible != 0) & (visible != 1), "visible is not 0 or 1"),
+                      (bad_dof, "dof is not above 2 (nan, a number above 2 or inf)"),
                       (repeated_rows(ids, frames), "a second row for the same point_id and frame")):
         if bad.any():
             row = int(np.argmax(bad))
             raise CondtrackError(f"{path}: line {line_of[row]} (point_id {ids[row]}, frame {frames[row]}): {what}")
     visible = visible.astype(bool)
-    method = _codes_of(path, table[:, 8])
+    method = _codes_of(path, table[:, -1])
     point_ids, first_row, point_index = np.unique(ids, return_index=True, return_inverse=True)
     n_points, n_frames = len(point_ids), (int(frames.max()) + 1 if len(frames) else 0)
     refuse_sparse(path, frames, line_of, n_points)
     xy = np.full((n_points, n_frames, 2), np.nan)
     cov = np.full((n_points, n_frames, 2, 2), np.nan)
+    dof = np.full((n_points, n_frames), np.nan)
     vis = np.zeros((n_points, n_frames), bool)
     codes = np.full((n_points, n_frames), -1, np.int8)
     xy[point_index, frames] = values[:, :2]
     cov[point_index, frames] = values[:, [2, 3, 3, 4]].reshape(-1, 2, 2)
+    dof[point_index, frames] = row_dof
     vis[point_index, frames] = visible
     codes[point_index, frames] = method
     first_frame = np.full(n_points, np.iinfo(np.int64).max)
     np.minimum.at(first_frame, point_index, frames)
     queries = Queries(point_ids, first_frame, xy[np.arange(n_points), first_frame])
     empty = np.full_like(xy, np.nan)
-    tracks = Tracks(queries, xy, cov, vis, codes, empty, np.full_like(cov, np.nan))
+    tracks = Tracks(queries, xy, cov, dof, vis, codes, empty, np.full_like(cov, np.nan))
     return tracks, {"n_frames": n_frames}
 
 
@@ -127,7 +135,8 @@ def _check_layout(tracks: Tracks) -> None:
     """ValueError when arrays read from an HDF5 file depart from the schema's shapes or method codes."""
     p, f = len(tracks.queries), (tracks.xy.shape[1] if tracks.xy.ndim == 3 else -1)
     for name, array, shape in (
-        ("xy", tracks.xy, (p, f, 2)), ("cov", tracks.cov, (p, f, 2, 2)), ("visible", tracks.visible, (p, f)),
+        ("xy", tracks.xy, (p, f, 2)), ("cov", tracks.cov, (p, f, 2, 2)), ("dof", tracks.dof, (p, f)),
+        ("visible", tracks.visible, (p, f)),
         ("method_code", tracks.method, (p, f)), ("z", tracks.z, (p, f, 2)), ("R", tracks.R, (p, f, 2, 2)),
     ):
         if array.shape != shape:
@@ -147,9 +156,10 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
         try:
             meta = {key: (value.decode() if isinstance(value, bytes) else value) for key, value in f.attrs.items()}
             version = meta.get("schema_version")
-            if version != SCHEMA_VERSION:
+            if version not in READABLE_SCHEMA_VERSIONS:
                 raise CondtrackError(
-                    f"{path}: schema_version {plain(version)} is not supported (this condtrack reads {SCHEMA_VERSION!r})"
+                    f"{path}: schema_version {plain(version)} is not supported (this condtrack reads "
+                    f"{' and '.join(map(repr, READABLE_SCHEMA_VERSIONS))})"
                 )
             t = f["tracks"]
             queries_table = f["queries"][()]
@@ -161,7 +171,10 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
             # the file's code table; without one, the built-in codes (docs/schema.md)
             names = np.array(t["method_code"].attrs.get("names", ",".join(BUILTIN_METHOD_CODES)).split(","))
             file_codes = np.append(_codes_of(path, names), np.int8(-1))  # the file's code -1 (last) stays -1
-            tracks = Tracks(queries, xy, t["cov"][()], t["visible"][()].astype(bool), file_codes[t["method_code"][()]], z, R)
+            has_state = np.isfinite(xy).all(axis=-1)
+            dof = t["dof"][()] if "dof" in t else np.where(has_state, np.inf, np.nan)  # schema 1.0: Gaussian
+            tracks = Tracks(queries, xy, t["cov"][()], dof, t["visible"][()].astype(bool),
+                            file_codes[t["method_code"][()]], z, R)
             _check_layout(tracks)
         except (KeyError, OSError, RuntimeError, TypeError, ValueError, IndexError) as error:
             # h5py reports damaged metadata as OSError or RuntimeError
@@ -226,7 +239,8 @@ def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, in
     def pad(array: np.ndarray, fill: Any) -> np.ndarray:
         return np.concatenate([array, np.full((len(array), extra) + array.shape[2:], fill, array.dtype)], axis=1)
 
-    return Tracks(tracks.queries, pad(tracks.xy, np.nan), pad(tracks.cov, np.nan), pad(tracks.visible, False),
+    return Tracks(tracks.queries, pad(tracks.xy, np.nan), pad(tracks.cov, np.nan), pad(tracks.dof, np.nan),
+                  pad(tracks.visible, False),
                   pad(tracks.method, -1), pad(tracks.z, np.nan), pad(tracks.R, np.nan))
 
 

@@ -2,10 +2,11 @@
 
 CSV: long format, one row per point per frame on which the point has a state,
 ordered by point then frame, columns
-``point_id,frame,x,y,cov_xx,cov_xy,cov_yy,visible,method``, ``\\n`` line ends.
+``point_id,frame,x,y,cov_xx,cov_xy,cov_yy,dof,visible,method``, ``\\n`` line ends.
 Floats use fixed formats (``FLOAT_FORMATS``): positions with 6 decimals
-(round-trip to 1e-6 px), covariances in ``%.6e``; an infinite variance is
-written ``inf`` and an undefined one ``nan``.
+(round-trip to 1e-6 px), covariances in ``%.6e``, degrees of freedom in
+``%.6g``; an infinite variance or ``dof`` (Gaussian) is written ``inf`` and an
+undefined one ``nan``.
 
 HDF5: datasets written without timestamps, with fixed chunking and gzip
 compression, so that one input, config and seed give identical datasets.
@@ -31,8 +32,10 @@ from condtrack_cli.types import SequenceInfo, Tracks
 if TYPE_CHECKING:
     import h5py
 
-CSV_COLUMNS = ("point_id", "frame", "x", "y", "cov_xx", "cov_xy", "cov_yy", "visible", "method")
-FLOAT_FORMATS = {"x": "%.6f", "y": "%.6f", "cov_xx": "%.6e", "cov_xy": "%.6e", "cov_yy": "%.6e"}
+CSV_COLUMNS = ("point_id", "frame", "x", "y", "cov_xx", "cov_xy", "cov_yy", "dof", "visible", "method")
+#: The columns of schema 1.0 files (no ``dof``: read as Gaussian).
+CSV_COLUMNS_1 = tuple(name for name in CSV_COLUMNS if name != "dof")
+FLOAT_FORMATS = {"x": "%.6f", "y": "%.6f", "cov_xx": "%.6e", "cov_xy": "%.6e", "cov_yy": "%.6e", "dof": "%.6g"}
 
 
 def csv_text(tracks: Tracks) -> str:
@@ -49,6 +52,7 @@ def csv_text(tracks: Tracks) -> str:
         np.char.mod(FLOAT_FORMATS["cov_xx"], cov[:, 0, 0]),
         np.char.mod(FLOAT_FORMATS["cov_xy"], cov[:, 0, 1]),
         np.char.mod(FLOAT_FORMATS["cov_yy"], cov[:, 1, 1]),
+        np.char.mod(FLOAT_FORMATS["dof"], tracks.dof[points, frames]),
         np.char.mod("%d", tracks.visible[points, frames].astype(int)),
         methods.astype(str),
     ]
@@ -98,6 +102,7 @@ def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, A
         _dataset(group, "point_id", q.point_id.astype(np.int64), settings)
         _dataset(group, "xy", tracks.xy, settings, units="px", missing="NaN where the point has no state")
         _dataset(group, "cov", tracks.cov, settings, units="px^2", meaning="posterior covariance; NaN undefined, inf unbounded")
+        _dataset(group, "dof", tracks.dof, settings, meaning=DOF_MEANING)
         _dataset(group, "visible", tracks.visible, settings)
         _dataset(group, "method", np.array(tracks.point_methods(), dtype=h5py.string_dtype()), settings)
         group["method"].attrs["meaning"] = "the method that produced most of the point's frames"
@@ -110,6 +115,11 @@ def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, A
             m = f.create_group("measurements")
             _dataset(m, "z", tracks.z, settings, units="px", missing="NaN where no measurement was made")
             _dataset(m, "R", tracks.R, settings, units="px^2", meaning="inf diagonal: no information (uniform surface)")
+
+
+#: The ``dof`` dataset's ``meaning`` attribute (docs/schema.md).
+DOF_MEANING = ("degrees of freedom nu > 2 of the row's bivariate Student-t predictive distribution, whose covariance "
+               "is cov (scale matrix cov (nu - 2) / nu); inf: Gaussian; NaN where no state")
 
 
 #: Attributes of the optional datasets (``Tracks.extras``).
