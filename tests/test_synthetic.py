@@ -260,3 +260,14 @@ def test_jumps_and_card_are_the_hard_cases_of_issue_31(seed):
     back_again = [p for p in np.flatnonzero(covered.any(axis=1)) if card.visible[p, np.flatnonzero(covered[p]).max():].any()]
     assert len(back_again) >= 10
     assert not card.visible[card.layer == 1, 0].any()  # the card starts outside the frame
+
+
+def test_synth_help_lists_every_scene():
+    """The --scene help is written out (the command line imports no numpy for --help): it names every scene."""
+    from click.testing import CliRunner
+
+    from condtrack_cli.cli import cli
+    from condtrack_cli.frames.synthetic import SCENES
+
+    text = " ".join(CliRunner().invoke(cli, ["synth", "--help"]).output.split())
+    assert f"Scene to write into OUT: {', '.join(SCENES)}." in text
