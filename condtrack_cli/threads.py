@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import os
 
+from condtrack_cli.errors import CondtrackError
+
 #: Environment variable giving the default of ``--threads``.
 THREADS_ENV = "CONDTRACK_THREADS"
 
@@ -40,6 +42,16 @@ def threads_from_environment() -> int | None:
     if not text.isdigit() or int(text) < 1:
         raise ValueError(f"{THREADS_ENV}={text!r}: expected a positive integer")
     return int(text)
+
+
+def requested_threads(threads: int | None) -> int | None:
+    """--threads, else $CONDTRACK_THREADS, else None."""
+    if threads is not None:
+        return threads
+    try:
+        return threads_from_environment()
+    except ValueError as error:
+        raise CondtrackError(str(error)) from None
 
 
 def threads_per_job(requested: int | None, jobs: int, available: int | None = None) -> tuple[int, str | None]:

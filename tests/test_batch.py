@@ -17,7 +17,8 @@ from pathlib import Path
 import pytest
 from conftest import default_sigint
 
-from condtrack_cli.batch import MANIFEST, output_names, parse_shard, shard
+from condtrack_cli.batch.manifest import MANIFEST
+from condtrack_cli.batch.plan import output_names, parse_shard, shard
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.frames.synthetic import make_scene, write_scene
 

@@ -29,7 +29,8 @@ from scipy.optimize import least_squares
 
 from condtrack_cli.frames.synthetic import make_scene
 from condtrack_cli.motion.field import LocalField
-from condtrack_cli.motion.local import LocalMotion, exact_local_motion
+from condtrack_cli.motion.local import LocalMotion
+from condtrack_cli.motion.local.exact import exact_local_motion
 from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings
 from condtrack_cli.types import Frame
 

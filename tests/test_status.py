@@ -8,7 +8,7 @@ import shlex
 from click.testing import CliRunner
 
 from condtrack_cli import __version__
-from condtrack_cli.batch import ClipRecord, append_record
+from condtrack_cli.batch.manifest import ClipRecord, append_record
 from condtrack_cli.cli import cli
 from condtrack_cli.config import load_config
 from condtrack_cli.errors import MissingInput

@@ -16,7 +16,7 @@ from condtrack_cli.motion.robust import GlobalMotion
 PACKAGE = Path(ct.__file__).parent
 
 #: Modules that may read the Config: the commands, the API and drivers, the pipeline, the hashes, the evaluation.
-CONFIG_READERS = ("config.py", "cli/", "api.py", "run.py", "batch.py", "batch_command.py", "batch_status.py", "pipeline.py",
+CONFIG_READERS = ("config.py", "cli/", "api.py", "run.py", "batch/", "pipeline.py",
                   "hashes.py",
                   "evaluate/")
 

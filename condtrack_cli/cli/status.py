@@ -19,7 +19,7 @@ def status_command(out_dir: str, as_json: bool) -> None:
     time taken and the command that redoes the failed and missing inputs.
     The exit code is 1 when an input's latest record is failed.
     """
-    from condtrack_cli.batch_status import batch_status
+    from condtrack_cli.batch.status import batch_status
 
     status = batch_status(out_dir)
     if as_json:

@@ -9,13 +9,13 @@ from pathlib import Path
 import click
 
 from condtrack_cli import MAX_SEED, registry
-from condtrack_cli.batch_command import batch_options, refuse_batch_options, requested_threads, run_batch
+from condtrack_cli.cli.batch_options import batch_options, refuse_batch_options
 from condtrack_cli.cli.options import overlay_options, overlay_style
 from condtrack_cli.config import Config, config_keys, load_config
 from condtrack_cli.errors import read_error, warn
 from condtrack_cli.io.atomic import refuse_overwriting_inputs
 from condtrack_cli.progress import Progress, show_warnings
-from condtrack_cli.threads import threads_per_job, use_threads
+from condtrack_cli.threads import requested_threads, threads_per_job, use_threads
 
 
 class _MethodChoice(click.Choice):
@@ -67,6 +67,7 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     gives each input's status, and the exit code is 1 if any input failed.
     OUT_DIR/manifest.jsonl gets one line per input as it ends.
     """
+    from condtrack_cli.batch import run_batch
     from condtrack_cli.run import track_input
 
     show_warnings(not quiet)

@@ -5,7 +5,7 @@ all started points and all their particles at once:
 
 - model: the local robust motion on a window around each particle gives the
   mean x^(i) + P(x^(i)) theta_k(x^(i)) =: mu^(i) and Q_k^(i) of eq. (5)
-  (``motion/local.py``: one shared field per frame, sampled at the particles);
+  (``motion/local/``: one shared field per frame, sampled at the particles);
   An option (``layer_jump``, off by default, docs/departures.md): a point not
   found on the previous frame whose local motion now departs from its layer's
   (a jump beyond ``layer_jump`` px and its layer's step: an occluder's field)

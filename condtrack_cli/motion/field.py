@@ -1,6 +1,6 @@
 """The local motion field handed to the filters: U(x) and Q_k(x) of eq. (5) on a grid, sampled at any positions.
 
-Both local estimators build one: ``local.py`` (the robust regression on a grid of
+Both local estimators build one: ``local/`` (the robust regression on a grid of
 windows, nodes every few px) and ``dense.py`` (the DIS field, a node per pixel).
 """
 

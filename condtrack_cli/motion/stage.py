@@ -12,7 +12,7 @@ from condtrack_cli.registry import register
 
 @register("motion", "robust", RobustMotionSettings, "robust parametric motion, coarse to fine with IRLS")
 def make_robust_motion(settings: RobustMotionSettings, **_context) -> MotionStages:
-    """Robust parametric motion: global support (``robust.py``), local support (``local.py``), Q_k (``state_noise.py``)."""
+    """Robust parametric motion: global support (``robust.py``), local support (``local/``), Q_k (``state_noise.py``)."""
     return MotionStages(
         global_motion=GlobalMotion(settings),
         local_motion=LocalMotion(settings),

@@ -1,6 +1,6 @@
-"""What a batch's manifest says now: each input's latest record, the counts, and the command that redoes the rest.
+"""Read the record back (``condtrack status``): each input's latest manifest record, the counts, the redo command.
 
-``OUT_DIR/manifest.jsonl`` gains a line per attempt (``batch.ClipRecord``); a
+``OUT_DIR/manifest.jsonl`` gains a line per attempt (``manifest.ClipRecord``); a
 resumed or retried batch leaves several per input, and the last one counts.
 An input whose last record is ``ok`` or ``skipped`` but whose output file is
 gone is ``missing``.
@@ -13,7 +13,8 @@ from collections import Counter
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from condtrack_cli.batch import MANIFEST, output_names, read_manifest
+from condtrack_cli.batch.manifest import MANIFEST, read_manifest
+from condtrack_cli.batch.plan import output_names
 from condtrack_cli.config import load_config
 from condtrack_cli.errors import CondtrackError, MissingInput
 from condtrack_cli.hashes import config_hash

@@ -1,0 +1,76 @@
+"""A batch: many inputs, one output each in OUT_DIR, on local processes or a Dask cluster; ``run_batch`` runs one.
+
+The modules follow a batch's flow, each called once from ``run_batch``:
+
+- ``plan``: inputs -> jobs (output names, shard, what --skip-existing skips), refusals before any work;
+- ``job``: one job, run in whichever process (the same bytes everywhere);
+- ``local`` / ``dask``: execute the jobs in a process pool or on a Dask cluster, and stop them on an interrupt;
+- ``manifest``: record each input's end in ``OUT_DIR/manifest.jsonl`` (``status`` reads it for ``condtrack status``);
+- ``report``: a progress line per input, the final table and the failures.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from pathlib import Path
+
+import click
+
+from condtrack_cli.batch.dask import connect_dask, run_dask
+from condtrack_cli.batch.local import run_local, sigterm_exits
+from condtrack_cli.batch.manifest import ClipRecord, append_record, interrupted_record
+from condtrack_cli.batch.plan import plan_batch
+from condtrack_cli.batch.report import ClipProgress, report_end
+from condtrack_cli.config import Config
+from condtrack_cli.threads import requested_threads, threads_per_job
+
+
+def run_batch(
+    inputs: list[str], config: Config, queries_path: str | None, out_dir: str, batch_format: str, seed: int,
+    jobs: int | None, quiet: bool, skip_existing: bool, shard: tuple[int, int] | None, scheduler: str | None,
+    scheduler_file: str | None, threads: int | None,
+) -> None:
+    """Plan, run and report a batch; exit 1 when an input failed. ``jobs`` None: -j not given (one job at a time)."""
+    usage = click.get_current_context()
+    if scheduler and scheduler_file:
+        usage.fail("--scheduler and --scheduler-file: give one")
+    on_dask = bool(scheduler or scheduler_file)
+    if on_dask and jobs is not None:
+        usage.fail("-j/--jobs: not with --scheduler (the Dask workers run the inputs: dask worker --nworkers)")
+    jobs = jobs or 1
+    requested = requested_threads(threads)
+    if on_dask:
+        per_job, warning = requested or 1, None  # a Dask worker runs several tasks at once: one thread each by default
+    else:
+        per_job, warning = threads_per_job(requested, min(jobs, len(inputs)))
+    if warning and not quiet:
+        click.echo(f"warning: {warning}", err=True)
+    # The scheduler is reached before the out-dir is made: one that does not answer leaves nothing behind.
+    connection = connect_dask(scheduler, scheduler_file) if on_dask else contextlib.nullcontext()
+    with connection as client:
+        plan = plan_batch(inputs, config, queries_path, Path(out_dir), f".{batch_format}", seed, per_job, shard,
+                          skip_existing)
+        progress = ClipProgress(len(plan.jobs), quiet)
+        records: dict[str, ClipRecord] = {}
+
+        def finished(record: ClipRecord) -> None:
+            append_record(Path(out_dir), record)
+            records[record.input] = record
+            progress(record)
+
+        with sigterm_exits():
+            for record in plan.skipped:
+                finished(record)
+            try:
+                if on_dask:
+                    run_dask(plan.todo, client, finished)
+                else:
+                    run_local(plan.todo, jobs, finished)
+            except (KeyboardInterrupt, SystemExit):  # the manifest says what did not end
+                for job in plan.todo:
+                    if job.input not in records:
+                        append_record(Path(out_dir), interrupted_record(job))
+                raise
+    if report_end([records[job.input] for job in plan.jobs], config.method, Path(out_dir), quiet):
+        sys.exit(1)

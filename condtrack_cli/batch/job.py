@@ -1,0 +1,74 @@
+"""One job of a batch: ``BatchJob`` (input -> output, picklable) and ``run_job``, its run in whichever process.
+
+``run_local`` and ``run_dask`` both run ``run_job``, so the outputs are the same
+bytes; on Dask the job also looks at its batch's stop Event while it runs.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+from condtrack_cli.batch.manifest import ClipRecord, job_record
+from condtrack_cli.config import Config
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.hashes import queries_hash
+from condtrack_cli.run import track_input
+from condtrack_cli.threads import threads_in_use, use_threads
+
+#: Seconds between two looks of a running Dask task at its batch's stop Event.
+STOP_CHECK_SECONDS = 0.2
+
+
+@dataclass(frozen=True)
+class BatchJob:
+    """One input of a batch: what ``run_job`` needs (picklable, sent to a worker process or a Dask task)."""
+
+    input: str
+    output: str
+    config: Config
+    queries_path: str | None
+    seed: int
+    threads: int | None  #: threads of this job (None: every core the process may use)
+    input_fingerprint: str = ""  #: ``hashes.input_fingerprint`` of the input when the batch was planned
+    stop_event: str | None = None  #: on Dask: the name of the batch's stop Event, checked while the job runs
+
+
+class Cancelled(CondtrackError):
+    """The batch that sent this Dask task was interrupted: the task stops without publishing its output."""
+
+
+class _StopCheck:
+    """A Dask task's ``progress(done, total)`` callback for ``track_input``: raises :class:`Cancelled` once the
+    batch's stop Event is set, asked at most every ``STOP_CHECK_SECONDS`` and after the last frame, before the output
+    is written."""
+
+    def __init__(self, event_name: str):
+        from distributed import Event
+
+        self.event, self.next_check = Event(event_name), 0.0
+
+    def __call__(self, done: int, total: int) -> None:
+        if done < total and time.monotonic() < self.next_check:
+            return
+        self.next_check = time.monotonic() + STOP_CHECK_SECONDS
+        if self.event.is_set():
+            raise Cancelled("cancelled: the batch was interrupted")
+
+
+def run_job(job: BatchJob) -> ClipRecord:
+    """Track one input into its output (in whichever process runs it); a bad input gives a ``failed`` record."""
+    use_threads(job.threads)
+    started = time.perf_counter()
+    stop_check = _StopCheck(job.stop_event) if job.stop_event else None
+    try:
+        summary = track_input(job.input, job.config, job.queries_path, job.output, job.seed, stop_check)
+        digest = queries_hash(job.queries_path)
+    except CondtrackError as error:
+        return job_record(job, "failed", error=str(error), seconds=round(time.perf_counter() - started, 3),
+                          frames=None, points=None, queries_hash="", threads=threads_in_use())
+    return job_record(
+        job, "ok", error=None, seconds=round(time.perf_counter() - started, 3), frames=summary.n_frames,
+        points=summary.n_points, visible=round(summary.visible_share, 4), queries_hash=digest,
+        threads=threads_in_use(),
+    )

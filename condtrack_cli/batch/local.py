@@ -1,0 +1,90 @@
+"""Execute here: a batch's jobs in this process or a spawned process pool, and how SIGTERM unwinds the batch."""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import os
+import signal
+from typing import Callable
+
+import click
+
+from condtrack_cli.batch.job import BatchJob, run_job
+from condtrack_cli.batch.manifest import ClipRecord
+from condtrack_cli.progress import show_warnings, warnings_shown
+from condtrack_cli.threads import blas_environment
+
+#: Exit status of a process stopped by SIGTERM (128 + 15), the shells' convention.
+SIGTERM_EXIT = 143
+
+
+def stop_on_sigterm(signum, frame) -> None:
+    """SIGTERM handler: raise SystemExit(143), so the process unwinds (finally blocks remove temporary files)."""
+    raise SystemExit(SIGTERM_EXIT)
+
+
+@contextlib.contextmanager
+def sigterm_exits():
+    """While open, SIGTERM raises SystemExit(143) here, so the batch unwinds (workers stopped, temporaries removed)."""
+    previous = signal.signal(signal.SIGTERM, stop_on_sigterm)
+    try:
+        yield
+    except SystemExit as exit_:
+        if exit_.code == SIGTERM_EXIT:
+            click.echo("Error: terminated", err=True)
+        raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+def _start_worker(warnings_shown: bool) -> None:
+    """Pool worker set-up: Ctrl-C is the parent's to handle; SIGTERM unwinds (an unfinished output's temporary file
+    goes); warnings shown as in the parent (not with -q)."""
+    show_warnings(warnings_shown)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, stop_on_sigterm)
+
+
+class _Environment:
+    """Context: extra environment variables while it is open (read by processes started inside it)."""
+
+    def __init__(self, values: dict[str, str]):
+        self.values, self.saved = values, {}
+
+    def __enter__(self):
+        self.saved = {name: os.environ.get(name) for name in self.values}
+        os.environ.update(self.values)
+
+    def __exit__(self, *exc):
+        for name, value in self.saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+
+
+def run_local(jobs: list[BatchJob], processes: int, on_record: Callable[[ClipRecord], None]) -> None:
+    """Run ``jobs`` here (``processes`` 1) or in a pool of spawned processes; ``on_record`` as each ends.
+
+    Any exception in this process (Ctrl-C's KeyboardInterrupt, SIGTERM's
+    SystemExit) drops the queued jobs and terminates the workers, whose running
+    job then removes its unfinished output: nothing is published after it.
+    """
+    if processes <= 1 or len(jobs) <= 1:
+        for job in jobs:
+            on_record(run_job(job))
+        return
+    context = multiprocessing.get_context("spawn")  # OpenCV is not fork-safe
+    with _Environment(blas_environment(jobs[0].threads)):  # read by the BLAS libraries when the workers import numpy
+        shown = warnings_shown()
+        pool = context.Pool(min(processes, len(jobs)), initializer=_start_worker, initargs=(shown,))
+    try:
+        for record in pool.imap_unordered(run_job, jobs):
+            on_record(record)
+        pool.close()
+    except BaseException:
+        pool.terminate()
+        raise
+    finally:
+        pool.join()
