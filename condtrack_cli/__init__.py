@@ -13,7 +13,11 @@ __version__ = "0.1.0"
 MAX_SEED = 2**63 - 1
 
 #: Version of the output schema (CSV columns, HDF5 layout); see docs/schema.md.
-SCHEMA_VERSION = "1.0"
+SCHEMA_VERSION = "1.1"
+
+#: Schema versions the readers accept: 1.1 added ``/tracks/trackability`` to the HDF5 file (CSV unchanged);
+#: a 1.0 file reads with trackability NaN (unknown).
+READABLE_SCHEMA_VERSIONS = ("1.0", "1.1")
 
 #: The pixel convention stated in every output file.
 COORDINATES = (

@@ -244,7 +244,7 @@ def test_messages_show_values_plainly_and_name_an_input_once(tmp_path):
     with h5py.File(h5, "w") as f:
         f.attrs["schema_version"] = np.int64(3)
     result = run_cli("info", str(h5))
-    assert result.stderr == f"Error: {h5}: schema_version 3 is not supported (this condtrack reads '1.0')\n"
+    assert result.stderr == f"Error: {h5}: schema_version 3 is not supported (this condtrack reads '1.0' and '1.1')\n"
     empty = tmp_path / "empty"
     empty.write_bytes(b"")
     result = run_cli("track", str(empty), str(SAMPLE), "-m", "stk", "--out-dir", str(tmp_path / "out"), "-q")

@@ -6,7 +6,8 @@ a row. Nor does it hold queries: a point's query is taken to be its first row
 whose header is not the schema's exact header line, with a negative frame or a
 second row for one (point_id, frame), with frames far past what its rows fill
 (``CELLS_PER_ROW``), and an HDF5 file of an unknown
-``schema_version``, are refused (docs/schema.md). h5py is imported
+``schema_version``, are refused (docs/schema.md); an HDF5 file of schema 1.0 (no
+``/tracks/trackability``) reads with trackability NaN. h5py is imported
 only by the functions that open an HDF5 file (start-up time, issue 13).
 """
 
@@ -18,7 +19,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from condtrack_cli import SCHEMA_VERSION
+from condtrack_cli import READABLE_SCHEMA_VERSIONS
 from condtrack_cli.errors import CondtrackError, MissingInput, plain, warn
 from condtrack_cli.io.formats import is_hdf5, track_format
 from condtrack_cli.io.write import CSV_COLUMNS
@@ -129,6 +130,7 @@ def _check_layout(tracks: Tracks) -> None:
     for name, array, shape in (
         ("xy", tracks.xy, (p, f, 2)), ("cov", tracks.cov, (p, f, 2, 2)), ("visible", tracks.visible, (p, f)),
         ("method_code", tracks.method, (p, f)), ("z", tracks.z, (p, f, 2)), ("R", tracks.R, (p, f, 2, 2)),
+        ("trackability", tracks.trackability, (p,)),
     ):
         if array.shape != shape:
             raise ValueError(f"{name} has shape {array.shape}, expected {shape}")
@@ -147,9 +149,10 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
         try:
             meta = {key: (value.decode() if isinstance(value, bytes) else value) for key, value in f.attrs.items()}
             version = meta.get("schema_version")
-            if version != SCHEMA_VERSION:
+            if version not in READABLE_SCHEMA_VERSIONS:
                 raise CondtrackError(
-                    f"{path}: schema_version {plain(version)} is not supported (this condtrack reads {SCHEMA_VERSION!r})"
+                    f"{path}: schema_version {plain(version)} is not supported (this condtrack reads "
+                    f"{' and '.join(map(repr, READABLE_SCHEMA_VERSIONS))})"
                 )
             t = f["tracks"]
             queries_table = f["queries"][()]
@@ -161,7 +164,10 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
             # the file's code table; without one, the built-in codes (docs/schema.md)
             names = np.array(t["method_code"].attrs.get("names", ",".join(BUILTIN_METHOD_CODES)).split(","))
             file_codes = np.append(_codes_of(path, names), np.int8(-1))  # the file's code -1 (last) stays -1
-            tracks = Tracks(queries, xy, t["cov"][()], t["visible"][()].astype(bool), file_codes[t["method_code"][()]], z, R)
+            # schema 1.0 has no trackability: unknown, NaN
+            scores = t["trackability"][()] if "trackability" in t else np.full(len(queries), np.nan)
+            tracks = Tracks(queries, xy, t["cov"][()], t["visible"][()].astype(bool), file_codes[t["method_code"][()]], z, R,
+                            trackability=scores)
             _check_layout(tracks)
         except (KeyError, OSError, RuntimeError, TypeError, ValueError, IndexError) as error:
             # h5py reports damaged metadata as OSError or RuntimeError
