@@ -5,9 +5,14 @@ g g^T, g the image gradient in grey levels per pixel (3x3 Sobel / 8). Its
 smaller eigenvalue, in (grey levels / px)^2, says how well the window can be
 located in every direction: near zero on a flat region and along an edge, large
 on a corner. A point is trackable when it exceeds ``min_eigenvalue``.
+
+The same test is applied to user-given queries (``detect/trackability.py``):
+``untrackable`` says what happens to those that fail it.
 """
 
 from __future__ import annotations
+
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -27,6 +32,10 @@ class ShiTomasiSettings(StageSettings):
     min_eigenvalue: float = Field(
         10.0, ge=0, description="trackability floor on the smaller structure-tensor eigenvalue ((grey/px)^2)"
     )
+    untrackable: Literal["keep", "drop", "error"] = Field(
+        "keep", description="queries at or below min_eigenvalue: keep (tracked, with a warning), drop (not tracked) or "
+        "error (--untrackable)",
+    )
 
 
 def min_eigenvalue_map(gray: np.ndarray, block: int) -> np.ndarray:
@@ -40,12 +49,18 @@ def min_eigenvalue_map(gray: np.ndarray, block: int) -> np.ndarray:
     return (a + c) / 2 - np.sqrt(((a - c) / 2) ** 2 + b * b)
 
 
-def trackable(gray: np.ndarray, xy: np.ndarray, block: int, floor: float) -> np.ndarray:
-    """(P,) bool: the smaller eigenvalue at each (P, 2) position (nearest pixel) exceeds ``floor``."""
+def scores_at(gray: np.ndarray, xy: np.ndarray, block: int) -> np.ndarray:
+    """(P,) float64 Shi-Tomasi score, (grey/px)^2: the smaller eigenvalue of the block-mean structure tensor
+    (:func:`min_eigenvalue_map`) at each (P, 2) position of a (H, W) float32 frame, read at the nearest pixel."""
     eig = min_eigenvalue_map(gray, block)
     cols = np.clip(np.rint(xy[:, 0]).astype(int), 0, gray.shape[1] - 1)
     rows = np.clip(np.rint(xy[:, 1]).astype(int), 0, gray.shape[0] - 1)
-    return eig[rows, cols] > floor
+    return eig[rows, cols].astype(np.float64)
+
+
+def trackable(gray: np.ndarray, xy: np.ndarray, block: int, floor: float) -> np.ndarray:
+    """(P,) bool: the Shi-Tomasi score (:func:`scores_at`) at each (P, 2) position exceeds ``floor``."""
+    return scores_at(gray, xy, block) > floor
 
 
 @register("detect", "shi_tomasi", ShiTomasiSettings, "Shi-Tomasi corners that pass the trackability test")
