@@ -12,22 +12,55 @@ their own query frames, and ``detect.untrackable`` (``--untrackable``, the API's
 - ``error``: the run stops before any tracking with a CondtrackError giving the count.
 
 The scores are written to ``/tracks/trackability`` (docs/schema.md).
+
+:class:`Aperture` gives a kept untrackable point's reported covariance its
+uncertainty along the aperture from the query frame on (``filters/calibration.py``).
 """
 
 from __future__ import annotations
 
 import itertools
+from dataclasses import dataclass
 from typing import Iterable
 
 import numpy as np
 
-from condtrack_cli.detect.shi_tomasi import ShiTomasiSettings, scores_at
+from condtrack_cli.detect.shi_tomasi import ShiTomasiSettings, scores_at, structure_tensors_at
 from condtrack_cli.errors import CondtrackError, warn
 from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import Queries
 
 #: The choices of ``detect.untrackable`` / ``--untrackable``.
 POLICIES = ("keep", "drop", "error")
+
+#: Most that :class:`Aperture` widens the query's variance along a direction: floor / eigenvalue is capped here
+#: (a std of sqrt(100) = 10 times the query's, 5 px with filter.*.initial_std 0.5).
+MAX_APERTURE_RATIO = 100.0
+
+
+@dataclass(frozen=True)
+class Aperture:
+    """The trackability test's window and floor (``detect.block``, ``detect.min_eigenvalue``), handed to the filters."""
+
+    block: int
+    floor: float
+
+    def offset(self, gray: np.ndarray, xy: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+        """(n, 2, 2) px^2: how far along the aperture the reference patches taken at (n, 2) ``xy`` on the (H, W)
+        float32 frame ``gray`` may stand from the points, given the queries' covariance (n, 2, 2) ``sigma``.
+
+        With T = sum_i lambda_i v_i v_i^T the structure tensor over ``block`` (Shi & Tomasi; lambda_i in
+        (grey/px)^2), the offset is sum_i (min(floor / lambda_i, MAX_APERTURE_RATIO) - 1)+ (v_i^T sigma v_i) v_i v_i^T:
+        zero along every direction where the patch passes the trackability test (every direction of a
+        trackable point), and along one where it does not, the query's variance grown as 1 / lambda_i, the
+        law of a match's variance in the window's texture (Lucas-Kanade: sigma^2 T^-1), so that
+        sigma + offset is sigma (floor / lambda_i) there: both directions on a flat region, along the edge on an edge.
+        """
+        values, vectors = np.linalg.eigh(structure_tensors_at(gray, np.asarray(xy, np.float64), self.block))
+        ratio = self.floor / np.maximum(values, self.floor / MAX_APERTURE_RATIO)  # (n, 2)
+        along = np.einsum("nki,nkl,nli->ni", vectors, sigma, vectors)  # v_i^T sigma v_i
+        grow = np.maximum(ratio - 1.0, 0.0) * along
+        return np.einsum("nki,ni,nli->nkl", vectors, grow, vectors)
 
 
 def trackability_settings(settings: StageSettings) -> tuple[int, float, str]:
