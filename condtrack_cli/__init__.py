@@ -15,7 +15,8 @@ MAX_SEED = 2**63 - 1
 #: Version of the output schema (CSV columns, HDF5 layout); see docs/schema.md.
 SCHEMA_VERSION = "2.0"
 
-#: Schema versions the readers accept: 1.0 files have no ``dof`` (read as Gaussian, dof inf).
+#: Schema versions the readers accept: 1.0 files have no ``dof`` (read as Gaussian, dof inf) and no
+#: ``/tracks/trackability`` (read as NaN, unknown).
 READABLE_SCHEMA_VERSIONS = ("1.0", "2.0")
 
 #: The pixel convention stated in every output file.

@@ -13,6 +13,7 @@ queries, config and seed::
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import itertools
 import numbers
 from dataclasses import dataclass
@@ -24,6 +25,7 @@ import yaml
 
 from condtrack_cli import MAX_SEED, pipeline, registry, types
 from condtrack_cli.config import Config, load_config, resolve
+from condtrack_cli.detect.trackability import POLICIES, query_scores, screen_queries, trackability_settings
 from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain
 from condtrack_cli.io import read as io_read
 from condtrack_cli.io.formats import track_format
@@ -89,6 +91,13 @@ class Tracks:
     def method(self) -> np.ndarray:
         """(P,) str: the method that produced most of each point's frames ("" for a point with no state)."""
         return np.array(self.result.point_methods(), dtype=str)
+
+    @property
+    def trackability(self) -> np.ndarray:
+        """(P,) float64 Shi-Tomasi score of each query at its query frame, (grey/px)^2: the smaller eigenvalue of the
+        structure tensor over ``detect.block``; a point is trackable above ``detect.min_eigenvalue``. NaN where
+        unknown (a CSV, or an HDF5 file of schema 1.0)."""
+        return self.result.trackability
 
     @property
     def queries(self) -> types.Queries:
@@ -157,6 +166,9 @@ def track_sequence(
         queries = read_queries(queries, info) if queries is not None else None
     else:
         queries = queries_from_rows(queries, info)
+    block, floor, policy = trackability_settings(config.stage("detect").settings)
+    if queries is not None:  # the trackability test (issue 29), before any tracking: drop and error act on it
+        queries, scores = screen_queries(queries, query_scores(source, queries, block), floor, policy)
     backward_frames = int(queries.frame.max()) + 1 if queries is not None and queries.frame.max() > 0 else 0
     on_frame = None
     if progress is not None:
@@ -166,7 +178,10 @@ def track_sequence(
             progress(next(done), total)
 
     max_std = config.output.max_std
-    result = trusted(pipeline.run(source, info, config, queries, seed=seed, on_frame=on_frame), max_std)
+    result = pipeline.run(source, info, config, queries, seed=seed, on_frame=on_frame)
+    if queries is None:  # detected on frame 0: they passed the test there
+        scores = query_scores(source, result.queries, block)
+    result = trusted(dataclasses.replace(result, trackability=scores), max_std)
     attributes = {"config": config.to_yaml(), "method": config.method, "seed": seed,
                   "config_hash": config_hash(config), "queries_hash": queries_hash(given), "smoothed": config.smooth,
                   "max_std": float("inf") if max_std is None else float(max_std)}
@@ -176,7 +191,8 @@ def track_sequence(
 def track(
     source: str | Path, queries: str | Path | np.ndarray | None = None, method: str | None = None,
     config: str | Path | Mapping[str, Any] | None = None, seed: int = 0,
-    progress: bool | Callable[[int, int], None] = False, max_std: float | None = None,
+    progress: bool | Callable[[int, int], None] = False, untrackable: str | None = None,
+    max_std: float | None = None,
 ) -> Tracks:
     """Track points through ``source``, a folder of frames or a video file.
 
@@ -189,6 +205,10 @@ def track(
     each frame read (``total``: the forward pass's frames plus the backward pass's).
     max_std: rows whose standard deviation along their covariance's major axis exceeds this many
     pixels are reported not visible (``output.max_std``, ``condtrack track --max-std``).
+    untrackable: what to do with queries whose Shi-Tomasi score is at or below ``detect.min_eigenvalue``
+    (overrides ``detect.untrackable``, as ``condtrack track --untrackable``): "keep" (tracked, with a
+    warning; the default), "drop" (left out of the result, the others keep their point ids) or "error"
+    (raise). The scores are in ``Tracks.trackability``.
     Raises :class:`condtrack_cli.CondtrackError` on bad input (a bad argument value or type: its subclasses
     ``InvalidArgument``, a ValueError, and ``InvalidArgumentType``, a TypeError); what the command
     line prints as ``warning:`` lines are :class:`condtrack_cli.CondtrackWarning` warnings.
@@ -201,8 +221,13 @@ def track(
     """
     if not (isinstance(progress, bool) or callable(progress)):
         raise InvalidArgumentType(f"progress: expected True, False or a callable(done, total), got {type(progress).__name__}")
+    if untrackable is not None and not isinstance(untrackable, str):
+        raise InvalidArgumentType(f"untrackable: expected one of {', '.join(POLICIES)}, got {type(untrackable).__name__}")
+    if untrackable is not None and untrackable not in POLICIES:
+        raise InvalidArgument(f"untrackable: {plain(untrackable)} is not one of {', '.join(POLICIES)}")
+    overrides = [f"detect.untrackable={untrackable}"] if untrackable is not None else []
     with Progress() if progress is True else contextlib.nullcontext(progress or None) as callback:
-        overrides = [] if max_std is None else [f"output.max_std={plain(max_std)}"]
+        overrides += [] if max_std is None else [f"output.max_std={plain(max_std)}"]
         tracks, _ = track_sequence(source, load_config(config, overrides, method), queries, seed, callback)
     return tracks
 

@@ -40,7 +40,7 @@ DEFAULT_METHOD = "auto"
 
 SECTION_DOCS = {
     "frames": "how frames are read (folder of images or video)",
-    "detect": "where points come from when no queries file is given",
+    "detect": "where points come from when no queries file is given, and the trackability test of queries",
     "motion": "motion between consecutive frames: local field, its noise and the global fit (paper §5.1)",
     "measure": "SSD matching of the reference patch and R_k from the correlation surface (§5.2)",
     "filter": "the tracking method and each filter's parameters",

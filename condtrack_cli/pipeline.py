@@ -34,6 +34,7 @@ import numpy as np
 
 from condtrack_cli import registry
 from condtrack_cli.config import Config
+from condtrack_cli.detect.trackability import Aperture, trackability_settings
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.filters.interface import Tracker
 from condtrack_cli.frame_reports import FrameReports, park, temporary_folder
@@ -64,6 +65,7 @@ def build_tracker(config: Config, queries: Queries, info: SequenceInfo, rng: np.
         measure=build_stage(config, "measure"), gamma=config.stage("measure").settings.gamma,
         state_noise=motion.state_noise, smooth=config.smooth, store_particles=config.output.store_particles,
         store_segmentation=config.output.store_segmentation, filter_settings=config.filters,
+        aperture=Aperture(*trackability_settings(config.stage("detect").settings)[:2]),
     )
 
 

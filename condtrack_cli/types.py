@@ -121,6 +121,8 @@ class Tracks:
        the point is not on the CNLF); ``segmentation`` (F - 1, H, W) uint8,
        255 x the robust weight of the global fit from frame k to k + 1 on frame
        k's grid (the pixels that follow the dominant motion).
+    trackability: (P,) float64 Shi-Tomasi score of each query at its query frame, (grey/px)^2
+       (``detect/trackability.py``); NaN where unknown (filled so when not given).
     """
 
     queries: Queries
@@ -132,6 +134,11 @@ class Tracks:
     z: np.ndarray
     R: np.ndarray
     extras: dict = field(default_factory=dict)
+    trackability: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if self.trackability is None:
+            object.__setattr__(self, "trackability", np.full(len(self.queries), np.nan))
 
     @property
     def has_state(self) -> np.ndarray:

@@ -48,6 +48,7 @@ def test_reports_written_in_blocks_stack_back_bit_for_bit(frames):
     assert not folder.exists()  # close removes the blocks
 
 
+@pytest.mark.filterwarnings("ignore:.*queries are untrackable:condtrack_cli.errors.CondtrackWarning")  # incidental queries (issue 29)
 @pytest.mark.parametrize("method", ["clf", "auto"])
 def test_a_pass_longer_than_a_block_tracks_as_one_held_in_memory(monkeypatch, shifted_folder, method):
     """6 frames in 4-frame blocks give the same bytes as with every report in memory (auto: the CNLF's path means)."""
@@ -79,6 +80,7 @@ def test_parked_tracks_are_their_arrays_read_back_from_disk(tmp_path):
     assert parked.queries is tracks.queries
 
 
+@pytest.mark.filterwarnings("ignore:.*queries are untrackable:condtrack_cli.errors.CondtrackWarning")  # incidental queries (issue 29)
 def test_an_unwritable_temporary_folder_is_a_one_line_error(monkeypatch, tmp_path, shifted_folder):
     folder, _ = shifted_folder
     missing = tmp_path / "no-such-folder"

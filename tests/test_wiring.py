@@ -50,6 +50,7 @@ def tiny_scene(tmp_path_factory):
     return folder, np.column_stack((np.zeros(6), xy))
 
 
+@pytest.mark.filterwarnings("ignore:.*queries are untrackable:condtrack_cli.errors.CondtrackWarning")  # incidental queries (issue 29)
 @pytest.mark.parametrize("stage, estimators", [
     ("dis", (DisGlobalMotion, DisLocalMotion)),
     ("robust", (GlobalMotion, LocalMotion)),

@@ -51,6 +51,9 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 @click.option("--max-std", type=click.FloatRange(min=0, min_open=True), metavar="PIXELS",
               help="Write a row as not visible when the std along its covariance's major axis exceeds PIXELS (output.max_std).")
 @click.option("--smooth", is_flag=True, help="Two-way smoothing: each frame's estimate also uses the later frames (filter.smooth).")
+@click.option("--untrackable", type=click.Choice(["keep", "drop", "error"]),
+              help="Queries whose Shi-Tomasi score is at or below detect.min_eigenvalue: keep (tracked, with a warning; "
+                   "default), drop (not tracked) or error (detect.untrackable).")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", shell_complete=_complete_key, help="Override one config value, e.g. motion.levels=3 (repeatable).")
 @click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
 @click.option("--out-dir", type=click.Path(file_okay=False), help="Batch: folder of the outputs (created if missing), one <input name>.<format> each, and manifest.jsonl.")
@@ -59,7 +62,8 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 @batch_options
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar, summary or warnings on stderr.")
 def track(inputs, config_path, queries_path, method, output_path, overlay_path, overlay_points, ellipses, ellipse_cap,
-          seed, max_std, smooth, overrides, list_path, out_dir, batch_format, jobs, quiet, threads, **batch) -> None:
+          seed, max_std, smooth, untrackable, overrides, list_path, out_dir, batch_format, jobs, quiet, threads,
+          **batch) -> None:
     """Track points through INPUT, a folder of frames or a video file.
 
     Several INPUTs (or --from-list) make a batch: one output per input in
@@ -83,7 +87,8 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         usage.fail("several inputs need --out-dir")
     if not in_batch:
         refuse_batch_options({**batch, "jobs": jobs})
-    flags = (["filter.smooth=true"] if smooth else []) + ([f"output.max_std={max_std!r}"] if max_std is not None else [])
+    flags = ((["filter.smooth=true"] if smooth else []) + ([f"detect.untrackable={untrackable}"] if untrackable else [])
+             + ([f"output.max_std={max_std!r}"] if max_std is not None else []))
     config: Config = load_config(config_path, list(overrides) + flags, method)
     if not in_batch:
         threads, warning = threads_per_job(requested_threads(threads), 1)

@@ -85,6 +85,7 @@ import numpy as np
 from pydantic import Field
 
 from condtrack_cli.filters.base import Tracker
+from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.calibration import ErrorModel
 from condtrack_cli.filters.clf import CLFSettings, CLFTracker, linear_dynamics
 from condtrack_cli.filters.cnlf import CNLFSettings, CNLFTracker, inverse2
@@ -308,13 +309,14 @@ class AutoTracker(Tracker):
           "each point to the CLF or the CNLF by which motion its measurements follow (paper §5.3, revised)")
 def make_auto(settings: AutoSettings, *, queries: Queries, info: SequenceInfo, rng: np.random.Generator,
               measure: Measurer, gamma: float, state_noise: StateNoise, smooth: bool, store_particles: bool,
-              store_segmentation: bool, filter_settings: Mapping[str, StageSettings], **_context) -> AutoTracker:
+              store_segmentation: bool, filter_settings: Mapping[str, StageSettings], aperture: Aperture | None = None,
+              **_context) -> AutoTracker:
     """The router over a CLF and a CNLF (``filter.clf``, ``filter.cnlf`` settings) sharing one reference per point."""
     clf_settings: CLFSettings = filter_settings["clf"]
     cnlf_settings: CNLFSettings = filter_settings["cnlf"]
     p = len(queries)
     reference = ReferenceMatcher(measure, clf_settings, p, gamma)
-    errors = ErrorModel(p, gamma)
+    errors = ErrorModel(p, gamma, aperture)
     clf = CLFTracker(clf_settings, queries, info, state_noise, reference, errors, smooth)
     cnlf = CNLFTracker(cnlf_settings, queries, info, rng, reference, errors, smooth, store_particles)
     return AutoTracker(settings, queries, info, clf, cnlf, errors, state_noise.q_floor, store_segmentation)

@@ -29,7 +29,10 @@ The model, per point, reported covariance = max(lambda, 1) Sigma + D + C:
   lambda Sigma is used as it is.
 - D: the covariance of the offset between the current reference patch and the
   true point, which later measurements of that patch cannot reduce. 0 at the
-  query. Each re-take of the reference at the posterior adds lambda Sigma_post.
+  query of a trackable point; a query that fails the trackability test (issue
+  29: a flat region, an edge) starts with its aperture offset
+  (``detect.trackability.Aperture``): its patch matches as well anywhere along
+  the aperture, so it may lock on a spot that is not the point. Each re-take of the reference at the posterior adds lambda Sigma_post.
   Each match adds the spread of a wrong match with its probability (PDA, one
   candidate): with B = lambda Sigma_{k|k-1} + C' the covariance of where the
   patch may be, the patch lies in the gate {nu^T S^-1 nu <= gamma} with prior
@@ -99,6 +102,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import expit
 
+from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.gauss2 import log_gauss2
 
 #: Weight kept by the pooled innovation statistics from one frame to the next.
@@ -118,8 +122,10 @@ def tail_dof(share: np.ndarray) -> np.ndarray:
 class ErrorModel:
     """Per-point terms of the reported covariance of P points (module docstring); arrays (P, ...)."""
 
-    def __init__(self, n_points: int, gamma: float):
+    def __init__(self, n_points: int, gamma: float, aperture: Aperture | None = None):
+        """aperture: the trackability test's window and floor, the queries' initial D (None: no initial D)."""
         self.gamma = gamma  #: the gate's chi-square threshold
+        self.aperture = aperture
         self.drift = np.zeros((n_points, 2, 2))  #: D, px^2
         self.coasted = np.zeros(n_points)  #: t, frames since the point was last found
         self.detour = np.zeros((n_points, 2))  #: sum over the frames coasted of the dynamics' disagreement, px
@@ -138,13 +144,17 @@ class ErrorModel:
         """q: pooled per-axis mean squared innovation (px^2; 0 before any point was found)."""
         return self._miss[0] / (2.0 * self._miss[1]) if self._miss[1] > 0 else 0.0
 
-    def start(self, index: np.ndarray, sigma: np.ndarray) -> None:
-        """Points ``index`` start with covariance (n, 2, 2) ``sigma``, no drift, not coasting."""
-        self.drift[index] = 0.0
+    def start(self, index: np.ndarray, sigma: np.ndarray, gray: np.ndarray | None = None,
+              xy: np.ndarray | None = None) -> None:
+        """Points ``index`` start at (n, 2) ``xy`` on the (H, W) frame ``gray`` with covariance (n, 2, 2) ``sigma``,
+        not coasting, D their aperture offset (0 where they pass the trackability test, or without ``gray``)."""
+        offset = self.aperture.offset(gray, xy, sigma) if self.aperture is not None and gray is not None else 0.0
+        self.drift[index] = offset
         self.coasted[index] = 0
         self.detour[index] = 0.0
-        self.reported[index] = sigma
-        self.excess_share[index] = 0.0
+        self.reported[index] = sigma + offset
+        total = np.trace(self.reported[index], axis1=1, axis2=2)
+        self.excess_share[index] = np.trace(self.drift[index], axis1=1, axis2=2) / np.where(total > 0, total, np.inf)
 
     @property
     def dof(self) -> np.ndarray:

@@ -43,6 +43,7 @@ from pydantic import Field
 
 from condtrack_cli.filters import kalman
 from condtrack_cli.filters.base import Tracker
+from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.calibration import ErrorModel
 from condtrack_cli.filters.reference import (
     GatedMeasurement, InitialStateSettings, MeasuredFilterSettings, ReferenceMatcher,
@@ -152,7 +153,7 @@ class CLFTracker(MDRTracker):
         self.on_local[index] = self.needs_local_motion
         self.local_wins[index] = 0
         self.reference.start(index, frame, self.xy[index])
-        self.errors.start(index, self.cov[index])
+        self.errors.start(index, self.cov[index], frame.gray, self.xy[index])
 
     def step(self, frame: Frame, prev: Frame | None, motion: FrameMotion | None):
         self.errors.begin_frame()
@@ -243,6 +244,6 @@ def make_mdr(settings: MDRSettings, *, queries: Queries, info: SequenceInfo, sta
 
 @register("filter", "clf", CLFSettings, "conditional linear filter (paper §3, Fig. 1): global motion + SSD measurement")
 def make_clf(settings: CLFSettings, *, queries: Queries, info: SequenceInfo, measure: Measurer, gamma: float,
-             state_noise: StateNoise, smooth: bool, **_context) -> CLFTracker:
+             state_noise: StateNoise, smooth: bool, aperture: Aperture | None = None, **_context) -> CLFTracker:
     reference = ReferenceMatcher(measure, settings, len(queries), gamma)
-    return CLFTracker(settings, queries, info, state_noise, reference, ErrorModel(len(queries), gamma), smooth)
+    return CLFTracker(settings, queries, info, state_noise, reference, ErrorModel(len(queries), gamma, aperture), smooth)

@@ -45,6 +45,7 @@ import numpy as np
 from pydantic import Field
 
 from condtrack_cli.filters.base import Tracker
+from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.calibration import ErrorModel
 from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, sample_gauss2
 from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMatcher
@@ -203,7 +204,7 @@ class CNLFTracker(Tracker):
         self.reference.start(index, frame, self.xy[index])
         s = self.settings
         self.adopt(index, frame.index, self.xy[index], np.repeat(s.initial_std**2 * np.eye(2)[None], index.size, 0))
-        self.errors.start(index, self.cov[index])
+        self.errors.start(index, self.cov[index], frame.gray, self.xy[index])
 
     def reported_cov(self) -> np.ndarray:
         """The error model's covariance (``calibration.py``), not the particles' spread alone."""
@@ -348,6 +349,8 @@ class CNLFTracker(Tracker):
 
 @register("filter", "cnlf", CNLFSettings, "conditional nonlinear filter (paper §4, Fig. 2): particles, local motion, optimal proposal")
 def make_cnlf(settings: CNLFSettings, *, queries: Queries, info: SequenceInfo, rng: np.random.Generator,
-              measure: Measurer, gamma: float, smooth: bool, store_particles: bool, **_context) -> CNLFTracker:
+              measure: Measurer, gamma: float, smooth: bool, store_particles: bool, aperture: Aperture | None = None,
+              **_context) -> CNLFTracker:
     reference = ReferenceMatcher(measure, settings, len(queries), gamma)
-    return CNLFTracker(settings, queries, info, rng, reference, ErrorModel(len(queries), gamma), smooth, store_particles)
+    return CNLFTracker(settings, queries, info, rng, reference, ErrorModel(len(queries), gamma, aperture), smooth,
+                       store_particles)

@@ -20,6 +20,7 @@ from typing import Mapping, Protocol
 
 import numpy as np
 
+from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.frame_reports import FrameReports
 from condtrack_cli.measure.interface import Measurer
 from condtrack_cli.motion.interface import FrameMotion
@@ -68,6 +69,7 @@ class FilterFactory(Protocol):
         store_particles: bool,
         store_segmentation: bool,
         filter_settings: Mapping[str, StageSettings],
+        aperture: Aperture,
     ) -> Tracker:
         """Build the tracker.
 
@@ -79,4 +81,6 @@ class FilterFactory(Protocol):
         store_particles, store_segmentation: the ``output`` switches of the optional
         datasets (``Tracks.extras``). filter_settings: every registered filter's
         settings by name, for a router that builds other filters (``auto``).
+        aperture: the trackability test's window and floor (``detect.block``, ``detect.min_eigenvalue``):
+        a query that fails it is reported uncertain along its aperture (``filters/calibration.py``, D).
         """

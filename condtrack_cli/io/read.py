@@ -7,7 +7,8 @@ whose header is not the schema's exact header line, with a negative frame or a
 second row for one (point_id, frame), with frames far past what its rows fill
 (``CELLS_PER_ROW``), and an HDF5 file of an unknown
 ``schema_version``, are refused (docs/schema.md). Files of schema 1.0 (no
-``dof`` column or dataset) are read as Gaussian: dof inf where a row exists. h5py is imported
+``dof`` column or dataset, no ``/tracks/trackability``) are read as Gaussian
+(dof inf where a row exists) with trackability NaN (unknown). h5py is imported
 only by the functions that open an HDF5 file (start-up time, issue 13).
 """
 
@@ -138,6 +139,7 @@ def _check_layout(tracks: Tracks) -> None:
         ("xy", tracks.xy, (p, f, 2)), ("cov", tracks.cov, (p, f, 2, 2)), ("dof", tracks.dof, (p, f)),
         ("visible", tracks.visible, (p, f)),
         ("method_code", tracks.method, (p, f)), ("z", tracks.z, (p, f, 2)), ("R", tracks.R, (p, f, 2, 2)),
+        ("trackability", tracks.trackability, (p,)),
     ):
         if array.shape != shape:
             raise ValueError(f"{name} has shape {array.shape}, expected {shape}")
@@ -173,8 +175,10 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
             file_codes = np.append(_codes_of(path, names), np.int8(-1))  # the file's code -1 (last) stays -1
             has_state = np.isfinite(xy).all(axis=-1)
             dof = t["dof"][()] if "dof" in t else np.where(has_state, np.inf, np.nan)  # schema 1.0: Gaussian
+            # schema 1.0 has no trackability: unknown, NaN
+            scores = t["trackability"][()] if "trackability" in t else np.full(len(queries), np.nan)
             tracks = Tracks(queries, xy, t["cov"][()], dof, t["visible"][()].astype(bool),
-                            file_codes[t["method_code"][()]], z, R)
+                            file_codes[t["method_code"][()]], z, R, trackability=scores)
             _check_layout(tracks)
         except (KeyError, OSError, RuntimeError, TypeError, ValueError, IndexError) as error:
             # h5py reports damaged metadata as OSError or RuntimeError

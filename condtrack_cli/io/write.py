@@ -109,6 +109,8 @@ def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, A
         _dataset(group, "method_code", tracks.method, settings, names=",".join(method_codes()),
                  meaning="per frame: index into names; -1 where no state")
         _dataset(f, "queries", np.column_stack([q.frame, q.xy]).astype(np.float64), settings, columns="frame,x,y")
+        _dataset(group, "trackability", np.asarray(tracks.trackability, np.float64), settings, units="(grey/px)^2",
+                 meaning=TRACKABILITY_MEANING)
         for name, data in tracks.extras.items():
             _dataset(f, name, data, settings, **EXTRA_ATTRIBUTES[name])
         if settings.store_measurements:
@@ -121,6 +123,11 @@ def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, A
 DOF_MEANING = ("degrees of freedom nu > 2 of the row's bivariate Student-t predictive distribution, whose covariance "
                "is cov (scale matrix cov (nu - 2) / nu); inf: Gaussian; NaN where no state")
 
+#: The ``meaning`` attribute of ``/tracks/trackability``.
+TRACKABILITY_MEANING = (
+    "Shi-Tomasi score of the query at its query frame: the smaller eigenvalue of the structure tensor over "
+    "detect.block; trackable above detect.min_eigenvalue; NaN where unknown"
+)
 
 #: Attributes of the optional datasets (``Tracks.extras``).
 EXTRA_ATTRIBUTES = {
