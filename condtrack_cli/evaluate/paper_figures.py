@@ -44,6 +44,8 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 #: Corridor has 7 frames (#0-#6, its Fig. 3), the shipped one 11: the first 7 are used. Garden: all 29 (paper: 27).
 SEQUENCES = (("oxford_corridor_nogt", "Corridor", 7), ("flowergarden_nogt", "Garden", None))
 METHODS = ("stk", "clf", "cnlf")
+#: What ``--methods`` accepts: the default three, and the paper's other baseline (MDR) or condtrack's router.
+CHOICES = METHODS + ("mdr", "auto")
 #: Most points detected on frame 0 (the paper's figures show about ten; a few dozen give steadier shares).
 POINTS = 40
 #: Least distance between two detected points (px): spread over the frame as in the paper's figures.
@@ -210,7 +212,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m condtrack_cli.evaluate.paper_figures", description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=REPO / "paper_figures", help="folder written (created)")
     parser.add_argument("--shared-data", type=Path, default=SHARED_DATA, help="folder holding the shared sequences")
-    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    parser.add_argument("--methods", nargs="+", default=list(METHODS), choices=CHOICES,
+                        help="methods run (default: stk clf cnlf)")
     args = parser.parse_args(argv)
     folders = [(args.shared_data / name, label, frames) for name, label, frames in SEQUENCES]
     missing = [str(folder) for folder, _, _ in folders if not folder.is_dir()]
@@ -237,10 +240,10 @@ def main(argv: list[str] | None = None) -> int:
                       f"{row['within']:.2f}, visible at both ends {row['visible_both']:.2f} ({trip.seconds:.1f} s)",
                       file=sys.stderr)
                 np.savetxt(args.out / f"{stem}.roundtrip.csv",
-                           np.column_stack([np.arange(len(start)), start, trip.back, trip.error,
-                                            trip.visible_end, trip.visible_back]),
+                           np.column_stack([np.arange(len(start)), start, trip.forward.xy[:, -1], trip.back,
+                                            trip.error, trip.visible_end, trip.visible_back]),
                            delimiter=",", fmt="%.3f", comments="",
-                           header="point,x0,y0,x_back,y_back,error_px,visible_end,visible_back")
+                           header="point,x0,y0,x_end,y_end,x_back,y_back,error_px,visible_end,visible_back")
     with open(args.out / "summary.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
         writer.writeheader()
