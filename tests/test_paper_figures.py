@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import cv2
 import numpy as np
 import pytest
 
@@ -64,3 +65,13 @@ def test_paper_skips_without_the_shared_data(tmp_path, capsys):
     assert paper_figures.main(["--shared-data", str(tmp_path / "absent"), "--out", str(tmp_path / "out")]) == 0
     assert "absent" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_draw_writes_an_enlarged_contact_sheet_and_an_overlay(scene_folder, tmp_path):
+    folder, start, _ = scene_folder
+    trip = paper_figures.round_trip(folder, start[:5], "clf", tmp_path)
+    paper_figures.draw(trip, folder, tmp_path / "s.sheet.png", tmp_path / "s.mp4")
+    sheet = cv2.imread(str(tmp_path / "s.sheet.png"))
+    scale = 3  # 192 x 144 frames are drawn 3x (MIN_DRAWN_SIDE 400 px)
+    assert sheet.shape == (2 * 144 * scale, 3 * 192 * scale, 3)
+    assert (tmp_path / "s.mp4").stat().st_size > 0
