@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: demo test bench samples clean
+.PHONY: demo test bench paper samples clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -28,8 +28,13 @@ test: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python -m condtrack_cli.evaluate.bench --out bench/results.md
 
+# The paper's own scenes (Oxford corridor, flower garden; ../shared/data, no ground truth): STK, CLF and CNLF
+# from Shi-Tomasi points of frame 0, contact sheets, overlays and the forward-backward round trip (docs/paper.md).
+paper: $(STAMP)
+	$(BIN)/python -m condtrack_cli.evaluate.paper_figures --out paper_figures
+
 samples: $(STAMP)
 	$(BIN)/condtrack synth sample_sequences --samples
 
 clean:
-	rm -rf $(VENV) demo-out .pytest_cache
+	rm -rf $(VENV) demo-out paper_figures .pytest_cache
