@@ -143,3 +143,17 @@ def test_mdr_can_move_points_by_the_local_motion():
         config = load_config(None, method="mdr", overrides=[f"filter.mdr.dynamics={dynamics}"])
         scores[dynamics] = score_tracks(pipeline.run(source, source.info, config, queries), truth)[0]["delta_avg"]
     assert scores["local"] > scores["global"] + 0.05, scores
+
+
+def test_the_bench_reports_the_paper_preset_beside_the_defaults():
+    """The coverage table of the bench's section against LK has the paper preset's rows; issue 12's checks
+    count the default methods only."""
+    from condtrack_cli.evaluate.bench.versus_lk import coverage_table, paper_columns
+
+    calibrated = {"cov50": 0.5, "cov90": 0.9, "cov95": 0.95, "cov99": 0.99, "cov_finite": 1.0, "nees": 2.0,
+                  "cov50_rescaled": 0.5}
+    results = {m: (calibrated, 1.0) for m in ("auto", "clf", "cnlf")}
+    results.update({column: (dict(calibrated, cov50=0.9), 9.0) for column in paper_columns(("clf", "cnlf"))})
+    lines = coverage_table({"a": results}, "set", ("clf", "cnlf"))
+    assert "| a | paper cnlf | 0.900 | 0.900 | 0.950 | 0.990 | 1.000 | 2.000 | 0.500 |" in lines
+    assert "- [x] pass: cov50 in [0.45, 0.55] on 3 of 3 runs" in lines
