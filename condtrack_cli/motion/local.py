@@ -10,7 +10,8 @@ p(x_k | x_{k-1}) = N(x_{k-1} + U(x_{k-1}), Q_k(x_{k-1})) (eq. 5). This module
 estimates U and Q_k once per frame pair on a grid of windows (``LocalMotion``,
 ``LocalField``) and samples them at any positions.
 
-The per-window regression (``exact_local_motion``, the reference):
+The per-window regression (``exact_local_motion``, the reference; ``window_regression`` is also the
+``regression`` stage's local motion at each asked position, ``regression.py``, issue 29):
 
 - U(s) = U_g(s) + P(d) theta on the window: U_g the global fit (``robust.py``),
   d = s - x the offset from the window centre, P(d) = [phi(d), 0; 0, phi(d)]
