@@ -38,7 +38,7 @@ def test_override_and_method():
         (["filter.stk.win_size=2"], "filter.stk.win_size", "greater than or equal to 3"),
         (["filter.kalman.x=1"], "filter.kalman", "valid keys"),
         (["tracker.x=1"], "tracker", "valid sections"),
-        (["motion.name=nope"], "motion.name", "valid: dis, robust"),
+        (["motion.name=nope"], "motion.name", "valid: dis, regression, robust"),
     ],
 )
 def test_bad_values_are_refused_naming_the_key(overrides, key, hint):

@@ -94,12 +94,21 @@ class CLFSettings(MeasuredFilterSettings):
 
 
 class MDRSettings(InitialStateSettings):
-    """MDR's settings: the initial position std only."""
+    """MDR's settings: the initial position std and which motion moves the points."""
+
+    dynamics: Literal["global", "local"] = Field(
+        "global",
+        description="motion moving the points: global (the dominant fit) or local (the window around each point, the CNLF's; paper §6: MDR is the filter's own dynamics)",
+    )
 
 
 class MDRTracker(Tracker):
-    """MDR: points moved by the dominant (global robust) motion alone, no measurement.
+    """MDR: points moved by the robust motion alone, no measurement.
 
+    ``dynamics: global`` (default): the dominant (global robust) motion, the CLF's
+    dynamics; ``local``: the local motion around each point (the motion stage's local
+    field, as ``CLFTracker`` with ``dynamics: local``), the CNLF's. The paper's MDR is
+    "our dynamics" (§6), compared with the CLF on Corridor and with the CNLF on Caltra.
     The covariance is the dynamics' own, A Sigma A^T + Q accumulated; a point is
     visible while it is inside the frame (MDR has no occlusion evidence).
     """
@@ -112,6 +121,7 @@ class MDRTracker(Tracker):
         super().__init__(queries, info)
         self.settings = settings
         self.state_noise = state_noise
+        self.needs_local_motion = settings.dynamics == "local"
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         self.cov[index] = self.settings.initial_std**2 * np.eye(2)
@@ -124,7 +134,12 @@ class MDRTracker(Tracker):
         return *kalman.predict(x, self.cov[index], A, b, self.state_noise.at(fit, x)), A
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion) -> None:
-        self.xy[index], self.cov[index], _ = self._predict(index, motion)
+        if self.needs_local_motion:
+            x = self.xy[index]
+            A, b, Q = local_dynamics(motion.local_field, x)
+            self.xy[index], self.cov[index] = kalman.predict(x, self.cov[index], A, b, Q)
+        else:
+            self.xy[index], self.cov[index], _ = self._predict(index, motion)
         x = self.xy[index]
         w, h = self.info.width, self.info.height
         self.visible[index] = (x[:, 0] >= -0.5) & (x[:, 0] <= w - 0.5) & (x[:, 1] >= -0.5) & (x[:, 1] <= h - 0.5)
@@ -236,7 +251,7 @@ class CLFTracker(MDRTracker):
         return dataclasses.replace(tracks, xy=xy, cov=cov + error_excess(self.transitions.stacked("excess", n_frames)))
 
 
-@register("filter", "mdr", MDRSettings, "MDR baseline: the global robust motion alone, no measurement")
+@register("filter", "mdr", MDRSettings, "MDR baseline: the robust motion alone (global or local), no measurement")
 def make_mdr(settings: MDRSettings, *, queries: Queries, info: SequenceInfo, state_noise: StateNoise,
              **_context) -> MDRTracker:
     return MDRTracker(settings, queries, info, state_noise)

@@ -37,8 +37,12 @@ class SSDSettings(StageSettings):
     c_rule: Literal["unit_sum", "likelihood"] = Field(
         "unit_sum", description="c of eq. (8): unit_sum (paper: sum_W exp(-c r) = 1) or likelihood (1/(4 sigma^2))"
     )
-    ambiguity_ratio: float = Field(
-        0.5, gt=0, lt=1, description="a second minimum with at least this fraction of the peak's response: R infinite"
+    ambiguity_ratio: float | None = Field(
+        0.5, gt=0, lt=1,
+        description="a second minimum with at least this fraction of the peak's response: R infinite (null: off, the paper's)",
+    )
+    uniform_test: Literal["g", "pearson"] = Field(
+        "g", description="form of the chi-square test of D_k against uniform: g (likelihood ratio) or pearson (the paper's)"
     )
     cost: Literal["ssd", "zero_mean", "normalised"] = Field(
         "zero_mean",
@@ -181,22 +185,31 @@ def response(
     syy = (d * dv * dv).sum(axis=(1, 2))
     R = np.stack([np.stack([sxx, sxy], -1), np.stack([sxy, syy], -1)], -2) + settings.r_floor * np.eye(2)
 
-    # Chi-square goodness of fit in its likelihood-ratio (G) form, one pseudo-observation per available
-    # cell: G = 2 N KL(D_k || law), asymptotically chi-square with N - 1 degrees of freedom for the uniform
-    # law. With N = 49 at 5%, the uniform law is rejected when KL > 0.67 nat: D_k fills less than half of W.
+    # Chi-square goodness of fit, one pseudo-observation per available cell (observed N D_k, expected 1 per
+    # cell), asymptotically chi-square with N - 1 degrees of freedom under the uniform law. ``g``: the
+    # likelihood-ratio form G = 2 N KL(D_k || uniform); with N = 49 at 5%, the uniform law is rejected when
+    # KL > 0.67 nat: D_k fills less than half of W. ``pearson``: the paper's "test du chi-deux",
+    # X^2 = sum (N D_k - 1)^2 = N^2 sum D_k^2 - N (it rejects more readily: a peak on a few cells weighs more).
     entropy = -special.xlogy(d, d).sum(axis=(1, 2))
     kl_uniform = np.log(n_available) - entropy
     critical = 2.0 * special.gammaincinv(np.maximum(n_available - 1, 1) / 2, 1.0 - settings.uniform_alpha)  # chi2 quantile
-    uniform_rejected = 2.0 * n_available * kl_uniform > critical
+    if settings.uniform_test == "pearson":
+        statistic = np.where(available, np.square(n_available[:, None, None] * d - 1.0), 0.0).sum(axis=(1, 2))
+    else:
+        statistic = 2.0 * n_available * kl_uniform
+    uniform_rejected = statistic > critical
     det = R[:, 0, 0] * R[:, 1, 1] - R[:, 0, 1] ** 2
     rxx, rxy, ryy = R[:, 0, 0, None, None], R[:, 0, 1, None, None], R[:, 1, 1, None, None]
     quadratic = ryy * du * du - 2 * rxy * du * dv + rxx * dv * dv
     log_g = np.where(available, -0.5 * quadratic / det[:, None, None], -np.inf)  # N(z_k, R_k) on W
     log_g = np.where(available, log_g - special.logsumexp(log_g, axis=(1, 2), keepdims=True), 0.0)
     kl_gauss = (special.xlogy(d, d) - d * log_g).sum(axis=(1, 2))
-    peak = available & (energy <= np.log(1.0 / settings.ambiguity_ratio))  # D_k >= ambiguity_ratio * max D_k
-    centre = np.full(count, half)
-    one_mode = ~_separate(peak, centre, centre)
+    if settings.ambiguity_ratio is None:  # off (the paper's)
+        one_mode = np.ones(count, bool)
+    else:
+        peak = available & (energy <= np.log(1.0 / settings.ambiguity_ratio))  # D_k >= ambiguity_ratio * max D_k
+        centre = np.full(count, half)
+        one_mode = ~_separate(peak, centre, centre)
     informative = ~empty & (n_available >= 2) & uniform_rejected & (kl_gauss < kl_uniform) & one_mode
     return R, informative, c
 
@@ -229,7 +242,8 @@ def response_covariance(
        the Gaussian N(z_k, R_k) fits D_k better than the uniform law; and the cells with
        D_k >= ``ambiguity_ratio`` * max D_k form one group (two peaks 3 px or more apart
        do not; cells 2 px apart are grouped so that a steep oblique valley, which the
-       grid samples with one-cell gaps, stays one group).
+       grid samples with one-cell gaps, stays one group; not tested with ``ambiguity_ratio``
+       null). The uniform test's statistic is ``uniform_test``'s (G or Pearson's).
     """
     R, informative, _ = response(residuals, sigma, m, settings, offset)
     return np.where(informative[:, None, None], R, infinite_covariance(len(R)))

@@ -27,7 +27,9 @@ The measurement of one point, all P points at once:
    least ``ambiguity_ratio`` times the peak's (a second deep minimum that the
    Gaussian on W(z_k) cannot represent; residuals equalised by eq. 10 count as
    deep as the peak). A straight edge longer than W(z_k) is such a case: its
-   valley holds equally deep minima all along.
+   valley holds equally deep minima all along. ``ambiguity_ratio: null`` turns
+   both one-peak tests off (this one and the one on W(z_k), ``response.py``): the
+   paper has neither. The local-minimum check stays.
 
 Noise model (paper, before eq. 10): I_k(z) - I~0(x0) ~ N(0, sigma_d^2) per pixel
 under a correct match. Both images carry acquisition noise of std sigma, so
@@ -191,7 +193,10 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
         level = np.where(gated < noise_threshold(sigma, t * t, settings.equalise_alpha), peak, gated)
     with np.errstate(invalid="ignore"):
         excess = c_eq8[:, None, None] * (level - peak)
-    competitive = (level == peak) | (excess <= np.log(1.0 / settings.ambiguity_ratio))  # exp(-c r) >= ratio * peak's
+    if settings.ambiguity_ratio is None:  # off (the paper's): only eq. (10) and the uniform test judge the surface
+        competitive = np.zeros_like(gate)
+    else:
+        competitive = (level == peak) | (excess <= np.log(1.0 / settings.ambiguity_ratio))  # exp(-c r) >= ratio * peak's
     distance = np.maximum(np.abs(dy + reach - row[:, None, None]), np.abs(dx + reach - col[:, None, None]))
     second = gate & (distance > half) & (candidates <= lowest_around) & competitive  # deep local minima beyond W
     informative = found & informative & at_minimum & ~second.any(axis=(1, 2))

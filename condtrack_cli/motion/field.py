@@ -1,7 +1,9 @@
 """The local motion field handed to the filters: U(x) and Q_k(x) of eq. (5) on a grid, sampled at any positions.
 
-Both local estimators build one: ``local/`` (the robust regression on a grid of
-windows, nodes every few px) and ``dense.py`` (the DIS field, a node per pixel).
+Two local estimators build one: ``local/`` (the robust regression on a grid of
+windows, nodes every few px) and ``dense.py`` (the DIS field, a node per pixel). The
+``regression`` stage's ``RegressionField`` (``regression.py``) has the same interface
+(``displacement``, ``noise``, ``spacing``) but regresses at each asked position instead.
 """
 
 from __future__ import annotations

@@ -42,7 +42,7 @@ from condtrack_cli.evaluate.bench.accuracy import accuracy_table, calibration_ta
 from condtrack_cli.evaluate.bench.common import REPO
 from condtrack_cli.evaluate.bench.hard import REPORT_SEEDS, TUNE_SEEDS, hard_cases_table
 from condtrack_cli.evaluate.bench.speed import batch_table, memory_table, profile_table, speed_table
-from condtrack_cli.evaluate.bench.versus_lk import versus_lk_section
+from condtrack_cli.evaluate.bench.versus_lk import PAPER_METHODS, versus_lk_section
 
 
 def machine() -> str:
@@ -83,6 +83,12 @@ def main() -> None:
                         help="only print the section against OpenCV LK (issue 11); results.md is not written")
     parser.add_argument("--hard", choices=("tune", "report"),
                         help="only print issue 31's hard cases on the tuning or the reporting seeds")
+    parser.add_argument("--paper", default=",".join(PAPER_METHODS), metavar="METHODS",
+                        help="with --versus-lk: methods run with configs/paper.yaml as extra columns, comma-separated "
+                             "(issue 29; '' for none)")
+    parser.add_argument("--lk-points", type=int, default=300,
+                        help="with --versus-lk: most queries per real set (300; fewer to bound the paper preset's time)")
+    parser.add_argument("--no-synthetic", action="store_true", help="with --versus-lk: the real sets only")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="with --versus-lk or --hard: a config override for every condtrack run (a variant's numbers)")
     args = parser.parse_args()
@@ -94,7 +100,9 @@ def main() -> None:
     if args.versus_lk:
         args.work.mkdir(parents=True, exist_ok=True)
         extra = tuple(arg for override in args.set for arg in ("--set", override))
-        print("\n".join(versus_lk_section(args.work, args.shared_data, extra)))
+        paper = tuple(method for method in args.paper.split(",") if method)
+        print("\n".join(versus_lk_section(args.work, args.shared_data, extra, paper, args.lk_points,
+                                          not args.no_synthetic)))
         return
     if args.support:
         print("\n".join(support_table(args.support)))

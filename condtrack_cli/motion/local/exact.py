@@ -16,7 +16,7 @@ from condtrack_cli.motion.local.windows import (
     local_model,
     passes,
 )
-from condtrack_cli.motion.model import displacement
+from condtrack_cli.motion.model import MotionFit, displacement
 from condtrack_cli.motion.pyramid import build_pyramid, usable_levels
 from condtrack_cli.motion.robust import (
     MAD_TO_SIGMA,
@@ -53,7 +53,20 @@ def exact_local_motion(prev_gray: np.ndarray, cur_gray: np.ndarray, xy: np.ndarr
     prev, cur = build_pyramid(prev_gray, depth), build_pyramid(cur_gray, depth)
     fit = estimate_from_pyramids(Pyramid(prev.base, prev.levels[:global_levels]),
                                  Pyramid(cur.base, cur.levels[:global_levels]), settings)
-    global_flow = _global_flow(fit, shape)
+    return window_regression(prev, cur, _global_flow(fit, shape), fit, xy, settings)
+
+
+def window_regression(prev: Pyramid, cur: Pyramid, global_flow: np.ndarray, fit: MotionFit, xy: np.ndarray,
+                      settings: RobustMotionSettings) -> tuple[np.ndarray, np.ndarray]:
+    """The per-window regression of ``exact_local_motion`` on given pyramids and global fit.
+
+    prev, cur: pyramids of frames k-1 and k at least ``local_levels`` deep; global_flow:
+    ``_global_flow(fit, shape)``; xy: (M, 2) positions of frame k-1 (px). Returns U (M, 2) px and
+    Q_k (M, 2, 2) px^2. Memory ~ 40 M side^2 numbers: callers batch the positions. It is also the
+    ``regression`` stage's local motion at each asked position (``motion/regression.py``, issue 29).
+    """
+    shape = prev.base.shape
+    levels = local_levels(shape, settings.levels)
     xy = np.asarray(xy, np.float64)
     count = len(xy)
     translation = np.zeros((count, 2))  # residual translation at the position (px)
