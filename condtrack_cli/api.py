@@ -225,9 +225,9 @@ def track(
         raise InvalidArgumentType(f"untrackable: expected one of {', '.join(POLICIES)}, got {type(untrackable).__name__}")
     if untrackable is not None and untrackable not in POLICIES:
         raise InvalidArgument(f"untrackable: {plain(untrackable)} is not one of {', '.join(POLICIES)}")
-    overrides = [f"detect.untrackable={untrackable}"] if untrackable is not None else []
+    overrides = ([f"detect.untrackable={untrackable}"] if untrackable is not None else []) + (
+        [f"output.max_std={plain(max_std)}"] if max_std is not None else [])
     with Progress() if progress is True else contextlib.nullcontext(progress or None) as callback:
-        overrides += [] if max_std is None else [f"output.max_std={plain(max_std)}"]
         tracks, _ = track_sequence(source, load_config(config, overrides, method), queries, seed, callback)
     return tracks
 

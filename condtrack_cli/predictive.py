@@ -54,7 +54,7 @@ def ellipse_m2(level: float | np.ndarray, dof: float | np.ndarray) -> np.ndarray
     finite = np.isfinite(dof)
     nu = np.where(finite, dof, 4.0)  # 4.0: any nu > 2, off the mask
     student = (nu - 2.0) * np.expm1(-2.0 / nu * np.log1p(-level))
-    return np.where(finite, student, chi2_2dof(np.broadcast_to(level, np.broadcast_shapes(level.shape, dof.shape))))
+    return np.where(finite, student, chi2_2dof(level))
 
 
 def ellipse_level(m2: np.ndarray, dof: np.ndarray | float) -> np.ndarray:

@@ -32,7 +32,8 @@ The model, per point, reported covariance = max(lambda, 1) Sigma + D + C:
   query of a trackable point; a query that fails the trackability test (issue
   29: a flat region, an edge) starts with its aperture offset
   (``detect.trackability.Aperture``): its patch matches as well anywhere along
-  the aperture, so it may lock on a spot that is not the point. Each re-take of the reference at the posterior adds lambda Sigma_post.
+  the aperture, so it may lock on a spot that is not the point. Each re-take of
+  the reference at the posterior adds lambda Sigma_post.
   Each match adds the spread of a wrong match with its probability (PDA, one
   candidate): with B = lambda Sigma_{k|k-1} + C' the covariance of where the
   patch may be, the patch lies in the gate {nu^T S^-1 nu <= gamma} with prior
@@ -80,16 +81,13 @@ Student-t with the reported covariance and nu = 2 + 1 / (TAIL_CORE +
 TAIL_EXCESS s) degrees of freedom, s the share of D + C in the reported
 covariance's trace: a covariance made of the PDA and coasting terms is a
 mixture of rare large errors and many small ones, the more so the larger its
-share. nu was fitted (two constants, all methods together) on the synthetic
-scenes of seeds 1 and 2 (exact truth) to put the coverage at 50, 90, 95 and 99 %
-in issue 27's bands; a single nu (s ignored) fitted almost as well there (band
-loss 0.0128 against 0.0132) and worse on the held-out seed 0 scenes and the real
-sets (0.0151 against 0.0108, 0.0206 against 0.0181), so s carries little. Both
-want nu near 2: the errors in units of the covariance have a core far tighter
-than their second moment (median d^T C^-1 d 0.01-0.5 on the synthetic scenes
-against 1.39 for a Gaussian, while the 99 % tail still reaches 9): a maximum
-likelihood fit of (scale, nu) per set ran to nu = 2 on 60 of 84 set-method
-pairs. bench/results.md ("Calibration, Student-t") has the table per set.
+share. nu was fitted (two constants, all methods together, by a one-off grid
+search that is not part of the project) on the synthetic scenes of seeds 1 and
+2 (exact truth) to put the coverage at 50, 90, 95 and 99 % in issue 27's bands;
+a single nu (s ignored) fitted almost as well, so s carries little. The fit
+wants nu near 2: in units of the covariance the errors have a core far tighter
+than their second moment. ``bench --versus-lk`` prints the coverage per set
+(bench/results.md, "Calibration, Student-t").
 
 The filter's own state (its covariance, gate and gain) is unchanged, so positions
 are those of the filter without the model, bit for bit; ``filter.smooth`` smooths
@@ -152,14 +150,19 @@ class ErrorModel:
         self.drift[index] = offset
         self.coasted[index] = 0
         self.detour[index] = 0.0
-        self.reported[index] = sigma + offset
+        self._report(index, sigma, self.drift[index])
+
+    def _report(self, index: np.ndarray, own: np.ndarray, excess: np.ndarray) -> None:
+        """Reported covariance of points ``index``: the filter's (n, 2, 2) ``own`` plus the (n, 2, 2) ``excess``
+        D + C, and the share of the excess in its trace (``tail_dof``)."""
+        self.reported[index] = own + excess
         total = np.trace(self.reported[index], axis1=1, axis2=2)
-        self.excess_share[index] = np.trace(self.drift[index], axis1=1, axis2=2) / np.where(total > 0, total, np.inf)
+        self.excess_share[index] = np.trace(excess, axis1=1, axis2=2) / np.where(total > 0, total, np.inf)
 
     @property
     def dof(self) -> np.ndarray:
         """(P,) nu of each point's Student-t predictive distribution (module docstring), NaN before its start."""
-        return np.where(np.isfinite(self.reported).all(axis=(1, 2)), tail_dof(self.excess_share), np.nan)
+        return np.where(np.isnan(self.reported).any(axis=(1, 2)), np.nan, tail_dof(self.excess_share))
 
     def _coasting(self, frames: np.ndarray, detour: np.ndarray) -> np.ndarray:
         """C (n, 2, 2) after (n,) ``frames`` steps on the dynamics summing to the (n, 2) ``detour`` disagreement (px^2).
@@ -211,8 +214,5 @@ class ErrorModel:
         scaled = max(lam, 1.0) * sigma
         self.coasted[index] = np.where(found, 0, self.coasted[index] + 1)
         self.detour[index] = np.where(found[:, None], 0.0, self.detour[index] + disagreement)
-        excess = self.drift[index] + self._coasting(self.coasted[index], self.detour[index])
-        self.reported[index] = scaled + excess
-        total = np.trace(self.reported[index], axis1=1, axis2=2)
-        self.excess_share[index] = np.trace(excess, axis1=1, axis2=2) / np.where(total > 0, total, np.inf)
+        self._report(index, scaled, self.drift[index] + self._coasting(self.coasted[index], self.detour[index]))
         self.drift[index[retaken]] += lam * sigma[retaken]  # the new reference's offset, from the next frame on

@@ -6,8 +6,8 @@ for every position x that a filter asks about (each CNLF particle x_{k-1}^(i), t
 paper's Fig. 2 "pour i = 1 : N, évaluer theta_k^(i)"; each CLF point with local
 dynamics), U(x) and Q_k(x) come from the robust parametric regression of §5.1 on
 the ``local_window`` x ``local_window`` square centred on x (the paper's 32 x 32),
-``local.window_regression``, the per-window reference of the shared field
-(``local.py``'s module docstring): coarse to fine on the frames' pyramids, from the
+``local/exact.py: window_regression``, the per-window reference of the shared field
+(``motion/local/__init__.py``'s module docstring): coarse to fine on the frames' pyramids, from the
 global fit (the paper does not say where the regression starts), affine on the
 full-resolution level, Tukey (``robust_cost``) IRLS, Q_k the weighted-least-squares
 covariance of the window's translation plus ``q_floor``.
