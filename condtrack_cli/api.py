@@ -13,7 +13,6 @@ queries, config and seed::
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import itertools
 import numbers
 from dataclasses import dataclass
@@ -167,8 +166,8 @@ def track_sequence(
     else:
         queries = queries_from_rows(queries, info)
     block, floor, policy = trackability_settings(config.stage("detect").settings)
-    if queries is not None:  # the trackability test (issue 29), before any tracking: drop and error act on it
-        queries, scores = screen_queries(queries, query_scores(source, queries, block), floor, policy)
+    if queries is not None and policy != "keep":  # the trackability test (issue 29): drop and error act before tracking
+        queries, _ = screen_queries(queries, query_scores(source, queries, block), floor, policy)
     backward_frames = int(queries.frame.max()) + 1 if queries is not None and queries.frame.max() > 0 else 0
     on_frame = None
     if progress is not None:
@@ -178,10 +177,9 @@ def track_sequence(
             progress(next(done), total)
 
     max_std = config.output.max_std
-    result = pipeline.run(source, info, config, queries, seed=seed, on_frame=on_frame)
-    if queries is None:  # detected on frame 0: they passed the test there
-        scores = query_scores(source, result.queries, block)
-    result = trusted(dataclasses.replace(result, trackability=scores), max_std)
+    result = pipeline.run(source, info, config, queries, seed=seed, on_frame=on_frame)  # scores queries on the way
+    screen_queries(result.queries, result.trackability, floor, "keep")  # keep's warning (the others screened above)
+    result = trusted(result, max_std)
     attributes = {"config": config.to_yaml(), "method": config.method, "seed": seed,
                   "config_hash": config_hash(config), "queries_hash": queries_hash(given), "smoothed": config.smooth,
                   "max_std": float("inf") if max_std is None else float(max_std)}

@@ -30,11 +30,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable, Iterable
 
+import dataclasses
+
 import numpy as np
 
 from condtrack_cli import registry
 from condtrack_cli.config import Config
-from condtrack_cli.detect.trackability import Aperture, trackability_settings
+from condtrack_cli.detect.trackability import Aperture, QueryScorer, trackability_settings
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.filters.interface import Tracker
 from condtrack_cli.frame_reports import FrameReports, park, temporary_folder
@@ -105,7 +107,7 @@ def run(
 def merge_backward(forward: Tracks, backward: Tracks) -> Tracks:
     """Tracks with ``backward``'s (time-reversed, frames last..0) rows before each query frame.
 
-    The optional datasets (``extras``: particles, segmentation) are the forward pass's.
+    The optional datasets (``extras``: particles, segmentation) and the trackability scores are the forward pass's.
     """
     last = backward.xy.shape[1] - 1
     before = np.arange(forward.xy.shape[1])[None, :] < forward.queries.frame[:, None]  # (P, F)
@@ -119,8 +121,9 @@ def merge_backward(forward: Tracks, backward: Tracks) -> Tracks:
 
     return Tracks(
         queries=forward.queries, xy=combine(forward.xy, backward.xy), cov=combine(forward.cov, backward.cov),
-        dof=combine(forward.dof, backward.dof),        visible=combine(forward.visible, backward.visible), method=combine(forward.method, backward.method),
-        z=combine(forward.z, backward.z), R=combine(forward.R, backward.R), extras=forward.extras,
+        dof=combine(forward.dof, backward.dof), visible=combine(forward.visible, backward.visible),
+        method=combine(forward.method, backward.method), z=combine(forward.z, backward.z),
+        R=combine(forward.R, backward.R), extras=forward.extras, trackability=forward.trackability,
     )
 
 
@@ -139,14 +142,16 @@ def run_pass(
     """
     with FrameReports() as history:
         with Prefetched(frames) as ahead:  # frame k+1 is decoded while frame k is tracked
-            tracker = _track_frames(ahead, info, config, queries, seed, on_frame, history)
-        tracks = tracker.finish(history)
+            tracker, scores = _track_frames(ahead, info, config, queries, seed, on_frame, history)
+        tracks = dataclasses.replace(tracker.finish(history), trackability=scores)
     return tracker.smooth(tracks) if config.smooth else tracks
 
 
 def _track_frames(frames: Iterable[np.ndarray], info: SequenceInfo, config: Config, queries: Queries | None,
-                  seed: int, on_frame: Callable[[int, FrameEstimate], None] | None, history: FrameReports) -> Tracker:
-    """Step the tracker through ``frames``, each frame's report appended to ``history``; the tracker.
+                  seed: int, on_frame: Callable[[int, FrameEstimate], None] | None,
+                  history: FrameReports) -> tuple[Tracker, np.ndarray]:
+    """Step the tracker through ``frames``, each frame's report appended to ``history``; the tracker and the
+    (P,) trackability scores of the queries (``detect/trackability.py``), each taken on its query frame.
 
     The motion stage and the frames (work arrays, pyramids) are let go when this returns, before
     the tracker stacks the pass.
@@ -162,8 +167,10 @@ def _track_frames(frames: Iterable[np.ndarray], info: SequenceInfo, config: Conf
                 if not len(queries):
                     raise CondtrackError(f"{info.input}: no trackable point detected on frame 0")
             tracker = build_tracker(config, queries, info, np.random.default_rng(seed), motion)
+            scorer = QueryScorer(queries, trackability_settings(config.stage("detect").settings)[0])
             if config.smooth and not tracker.smoother:
                 raise CondtrackError(f"config key 'filter.smooth': method {config.method!r} has no smoother")
+        scorer.see(index, frame.gray)
         moved = prev is not None and tracker.needs_motion and bool((queries.frame < index).any())
         pair_motion = frame_motion(motion, prev, frame, tracker.needs_local_motion) if moved else None
         history.append(tracker.step(frame, prev, pair_motion))
@@ -172,4 +179,4 @@ def _track_frames(frames: Iterable[np.ndarray], info: SequenceInfo, config: Conf
         prev = frame
     if tracker is None:
         raise CondtrackError(f"{info.input}: the input has no frame")
-    return tracker
+    return tracker, scorer.scores

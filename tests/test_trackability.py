@@ -16,12 +16,10 @@ import pytest
 from scipy import ndimage
 
 import condtrack_cli as ct
-from condtrack_cli.config import load_config
 from condtrack_cli.detect import trackability
-from condtrack_cli.detect.shi_tomasi import ShiTomasiSettings, min_eigenvalue_map
+from condtrack_cli.detect.shi_tomasi import ShiTomasiSettings, scores_at, structure_tensors_at
 from condtrack_cli.errors import InvalidArgument, InvalidArgumentType
 from condtrack_cli.frames.readers import FrameSettings, open_frames
-from condtrack_cli.queries import read_queries
 
 #: The scene's queries on frame 0: point_id -> (x, y). A corner of a bright quadrant on a flat dark card, a point
 #: on its vertical edge, one in its flat inside, one on its horizontal edge, one on the texture around the card.
@@ -32,6 +30,34 @@ N_FRAMES = 8
 WARNING = re.compile(
     r"^warning: 3 of 5 queries are untrackable \(Shi-Tomasi score below detect\.min_eigenvalue 10\.0\), "
     r"e\.g\. point 1 at frame 0 \(149\.5, 140\.0\), score 0\.\d+; tracked anyway \(--untrackable keep\)$", re.M)
+
+
+def whole_frame_maps(gray: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray]:
+    """The whole frame's structure-tensor maps (a, b, c stacked, (3, H, W)) and Shi-Tomasi score map (H, W), by
+    OpenCV's filters: Sobel / 8 (reflect-101 border), products box-averaged over ``block`` (reflected border)."""
+    gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    a, b, c = (cv2.boxFilter(u * v, -1, (block, block), borderType=cv2.BORDER_REFLECT) for u, v in
+               ((gx, gx), (gx, gy), (gy, gy)))
+    return np.stack([a, b, c]), (a + c) / 2 - np.sqrt(((a - c) / 2) ** 2 + b * b)
+
+
+@pytest.mark.parametrize(("height", "width", "block"), [(120, 200, 7), (6, 5, 7), (3, 3, 31), (40, 30, 9)])
+def test_structure_tensors_on_point_windows_are_the_whole_frame_filters_at_the_points(height, width, block):
+    """Each point's window, borders included (a window larger than the frame reflects more than once), gives
+    what the whole frame's Sobel and box filter give at its nearest pixel, to float32 rounding."""
+    rng = np.random.default_rng(block)
+    gray = ndimage.gaussian_filter(rng.uniform(0, 255, (height, width)), 1.0).astype(np.float32)
+    xy = np.vstack([[[0, 0], [width - 1, height - 1], [0, height - 1], [width - 1, 0], [-3.0, height + 2.0]],
+                    np.column_stack([rng.uniform(0, width - 1, 200), rng.uniform(0, height - 1, 200)])])
+    maps, score = whole_frame_maps(gray, block)
+    cols = np.clip(np.rint(xy[:, 0]).astype(int), 0, width - 1)
+    rows = np.clip(np.rint(xy[:, 1]).astype(int), 0, height - 1)
+    tensors = structure_tensors_at(gray, xy, block)
+    scale = np.abs(maps).max()
+    np.testing.assert_allclose(tensors[:, [0, 0, 1], [0, 1, 1]].T, maps[:, rows, cols], rtol=0, atol=1e-6 * scale)
+    np.testing.assert_allclose(tensors[:, 0, 1], tensors[:, 1, 0], rtol=0, atol=0)
+    np.testing.assert_allclose(scores_at(gray, xy, block), score[rows, cols], rtol=0, atol=1e-6 * scale)
 
 
 def write_scene(folder: Path, noise: float = 2.0, seed: int = 0) -> None:
@@ -65,7 +91,7 @@ def run_cli(*args: str) -> subprocess.CompletedProcess:
                           capture_output=True, text=True, timeout=300)
 
 
-def test_scores_are_the_detectors_at_each_query_frame_one_map_per_frame(scene, monkeypatch):
+def test_scores_are_the_detectors_at_each_query_frame_one_call_per_frame(scene, monkeypatch):
     folder, _ = scene
     source = open_frames(FrameSettings(), folder)
     # the texture point queried on frame 0 and again on frame 3 (where the scene has moved 3 STEPs)
@@ -75,12 +101,12 @@ def test_scores_are_the_detectors_at_each_query_frame_one_map_per_frame(scene, m
     real = trackability.scores_at
     monkeypatch.setattr(trackability, "scores_at", lambda gray, xy, block: calls.append(len(xy)) or real(gray, xy, block))
     scores = trackability.query_scores(source, queries, block=7)
-    assert calls == [5, 1]  # one score map per query frame, all its points at once
+    assert calls == [5, 1]  # one call per query frame, all its points at once
     for k in (0, 3):
-        eig = min_eigenvalue_map(source.read(k).astype(np.float32), 7)
+        _, eig = whole_frame_maps(source.read(k).astype(np.float32), 7)
         on = queries.frame == k
         cols, rows = np.rint(queries.xy[on]).astype(int).T
-        np.testing.assert_array_equal(scores[on], eig[rows, cols])
+        np.testing.assert_allclose(scores[on], eig[rows, cols], rtol=1e-5, atol=1e-4)
     floor = ShiTomasiSettings().min_eigenvalue
     np.testing.assert_array_equal(scores > floor, [True, False, False, False, True, True])
 
@@ -161,9 +187,9 @@ def test_detected_points_carry_their_score(scene):
     folder, _ = scene
     tracks = ct.track(folder, method="stk")
     source = open_frames(FrameSettings(), folder)
-    eig = min_eigenvalue_map(source.read(0).astype(np.float32), ShiTomasiSettings().block)
+    _, eig = whole_frame_maps(source.read(0).astype(np.float32), ShiTomasiSettings().block)
     cols, rows = np.rint(tracks.queries.xy).astype(int).T
-    np.testing.assert_array_equal(tracks.trackability, eig[rows, cols])
+    np.testing.assert_allclose(tracks.trackability, eig[rows, cols], rtol=1e-5, atol=1e-4)
     assert (tracks.trackability > ShiTomasiSettings().min_eigenvalue).all()
 
 

@@ -38,21 +38,18 @@ class ShiTomasiSettings(StageSettings):
     )
 
 
-def structure_tensor_maps(gray: np.ndarray, block: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(a, b, c), each (H, W) float32: the block-mean structure tensor [[a, b], [b, c]] at every pixel, (grey/px)^2."""
-    gx = cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gy = cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    size = (block, block)
-    a = cv2.boxFilter(gx * gx, -1, size, borderType=cv2.BORDER_REFLECT)
-    b = cv2.boxFilter(gx * gy, -1, size, borderType=cv2.BORDER_REFLECT)
-    c = cv2.boxFilter(gy * gy, -1, size, borderType=cv2.BORDER_REFLECT)
-    return a, b, c
+#: The 3x3 Sobel derivative across x, [row, col], divided by 8 so that the gradient is in grey levels per pixel.
+SOBEL_X = np.array([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]) / 8.0
 
 
-def min_eigenvalue_map(gray: np.ndarray, block: int) -> np.ndarray:
-    """(H, W) float32 smaller eigenvalue of the block-mean structure tensor, (grey/px)^2."""
-    a, b, c = structure_tensor_maps(gray, block)
-    return (a + c) / 2 - np.sqrt(((a - c) / 2) ** 2 + b * b)
+def _reflect(index: np.ndarray, size: int, edge_repeated: bool) -> np.ndarray:
+    """``index`` folded into [0, size) as OpenCV's borders do: BORDER_REFLECT (``edge_repeated``,
+    fedcba|abcdef) or BORDER_REFLECT_101 (edcb|abcdef), repeated as often as a window larger than the frame needs."""
+    if not edge_repeated and size == 1:
+        return np.zeros_like(index)
+    period = 2 * size if edge_repeated else 2 * size - 2
+    folded = np.mod(index, period)
+    return np.where(folded < size, folded, period - folded - (1 if edge_repeated else 0))
 
 
 def _nearest(gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -63,17 +60,33 @@ def _nearest(gray: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def structure_tensors_at(gray: np.ndarray, xy: np.ndarray, block: int) -> np.ndarray:
-    """(P, 2, 2) float64 block-mean structure tensors at (P, 2) positions (nearest pixel), (grey/px)^2."""
+    """(P, 2, 2) float64 block-mean structure tensors at (P, 2) positions (nearest pixel), (grey/px)^2.
+
+    Computed on each point's own window, not on the whole frame: the gradient by the 3x3 Sobel (/ 8) with
+    OpenCV's default border (reflect-101), its products averaged over the ``block`` x ``block`` window with
+    the border reflected (edge repeated), as ``cv2.Sobel`` then ``cv2.boxFilter(..., BORDER_REFLECT)`` on the
+    frame would give them (up to float rounding).
+    """
+    height, width = gray.shape
     rows, cols = _nearest(gray, xy)
-    a, b, c = (m[rows, cols].astype(np.float64) for m in structure_tensor_maps(gray, block))
+    half = np.arange(block) - block // 2
+    taps = np.arange(-1, 2)
+    # (P, block, 3): the frame rows (cols) the Sobel reads for each row (col) of each point's window
+    sobel_rows = _reflect(_reflect(rows[:, None] + half, height, True)[:, :, None] + taps, height, False)
+    sobel_cols = _reflect(_reflect(cols[:, None] + half, width, True)[:, :, None] + taps, width, False)
+    patches = gray[sobel_rows[:, :, None, :, None], sobel_cols[:, None, :, None, :]].astype(np.float64)
+    gx = np.einsum("pijab,ab->pij", patches, SOBEL_X)  # (P, block, block)
+    gy = np.einsum("pijab,ba->pij", patches, SOBEL_X)
+    a, b, c = ((u * v).mean(axis=(1, 2)) for u, v in ((gx, gx), (gx, gy), (gy, gy)))
     return np.stack([np.stack([a, b], -1), np.stack([b, c], -1)], -2)
 
 
 def scores_at(gray: np.ndarray, xy: np.ndarray, block: int) -> np.ndarray:
     """(P,) float64 Shi-Tomasi score, (grey/px)^2: the smaller eigenvalue of the block-mean structure tensor
-    (:func:`min_eigenvalue_map`) at each (P, 2) position of a (H, W) float32 frame, read at the nearest pixel."""
-    rows, cols = _nearest(gray, xy)
-    return min_eigenvalue_map(gray, block)[rows, cols].astype(np.float64)
+    (:func:`structure_tensors_at`) at each (P, 2) position of a (H, W) frame, read at the nearest pixel."""
+    tensors = structure_tensors_at(gray, xy, block)
+    a, b, c = tensors[:, 0, 0], tensors[:, 0, 1], tensors[:, 1, 1]
+    return (a + c) / 2 - np.sqrt(((a - c) / 2) ** 2 + b * b)
 
 
 def trackable(gray: np.ndarray, xy: np.ndarray, block: int, floor: float) -> np.ndarray:

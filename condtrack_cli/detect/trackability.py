@@ -69,27 +69,43 @@ def trackability_settings(settings: StageSettings) -> tuple[int, float, str]:
     return tuple(getattr(settings, key, getattr(default, key)) for key in ("block", "min_eigenvalue", "untrackable"))
 
 
+class QueryScorer:
+    """Each query's Shi-Tomasi score, (grey/px)^2, taken on its own query frame as a pass reaches it.
+
+    ``scores`` is (P,) float64, NaN for the queries whose frame has not been seen.
+    """
+
+    def __init__(self, queries: Queries, block: int):
+        self.queries = queries
+        self.block = block
+        self.scores = np.full(len(queries), np.nan)
+
+    def see(self, index: int, gray: np.ndarray) -> None:
+        """Score the queries of frame ``index`` (its (H, W) float32 grey levels ``gray``), all at once."""
+        on = self.queries.frame == index
+        if on.any():
+            self.scores[on] = scores_at(gray, self.queries.xy[on], self.block)
+
+
 def query_scores(frames: Iterable[np.ndarray], queries: Queries, block: int) -> np.ndarray:
-    """(P,) float64 Shi-Tomasi score, (grey/px)^2, of each query at its query frame.
+    """(P,) float64 Shi-Tomasi score, (grey/px)^2, of each query at its query frame, before any tracking.
 
     ``frames`` iterates the sequence's (H, W) uint8 frames from frame 0; it is
-    read up to the last query frame only, and each query frame's score map is
-    computed once for all the points queried on it.
+    read up to the last query frame only. (A tracking pass scores its queries on
+    the way, ``pipeline.run``: this up-front pass is for the policies that act
+    before tracking, drop and error.)
     """
-    scores = np.full(len(queries), np.nan)
+    scorer = QueryScorer(queries, block)
     if not len(queries):
-        return scores
-    wanted = set(np.unique(queries.frame).tolist())
+        return scorer.scores
     stream = iter(frames)
     try:
         for index, image in enumerate(itertools.islice(stream, int(queries.frame.max()) + 1)):
-            if index in wanted:
-                on = queries.frame == index
-                scores[on] = scores_at(image.astype(np.float32), queries.xy[on], block)
+            scorer.see(index, image.astype(np.float32))
     finally:
         if hasattr(stream, "close"):  # a video reader's generator releases its decoder now, not at collection
             stream.close()
-    return scores
+    return scorer.scores
 
 
 def _number(value: float) -> str:
