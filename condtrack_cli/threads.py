@@ -1,4 +1,4 @@
-"""How many threads one clip uses: OpenCV's pool, scipy.fft's workers and the BLAS pools.
+"""How many threads one clip uses: OpenCV's pool and the BLAS pools.
 
 One clip alone uses every core this process may run on (:func:`cores`, its CPU
 affinity) unless ``--threads`` says otherwise. A batch of ``-j N`` gives each
@@ -7,8 +7,8 @@ for more threads than the machine has cores.
 
 The BLAS and OpenMP pools read their size once, when numpy is imported: a
 process started for a batch job gets :func:`blas_environment` in its
-environment before it imports anything; OpenCV and the FFT workers are set at
-run time by :func:`use_threads`.
+environment before it imports anything; OpenCV's pool is set at run time by
+:func:`use_threads`.
 """
 
 from __future__ import annotations
@@ -22,9 +22,6 @@ THREADS_ENV = "CONDTRACK_THREADS"
 
 #: Variables read by the BLAS / OpenMP libraries numpy and scipy may load, at import time.
 BLAS_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
-
-_fft_workers = -1  # scipy.fft's ``workers`` (-1: scipy's every core) until use_threads sets it
-
 
 def cores() -> int:
     """Cores this process may run on (its CPU affinity, not the machine's count)."""
@@ -79,22 +76,14 @@ def blas_environment(threads: int | None) -> dict[str, str]:
 
 
 def use_threads(threads: int | None) -> None:
-    """Size OpenCV's thread pool and scipy.fft's workers for this process (None or more than its cores: every core
-    it may use)."""
+    """Size OpenCV's thread pool for this process (None or more than its cores: every core it may use)."""
     import cv2
 
-    global _fft_workers
-    _fft_workers = cores() if threads is None else min(threads, cores())
-    cv2.setNumThreads(_fft_workers)
-
-
-def fft_workers() -> int:
-    """The ``workers`` argument of scipy.fft calls (-1: every core)."""
-    return _fft_workers
+    cv2.setNumThreads(cores() if threads is None else min(threads, cores()))
 
 
 def threads_in_use() -> dict[str, int | str]:
-    """What this process uses now: OpenCV's thread count, scipy.fft's workers, OMP_NUM_THREADS (reported per clip)."""
+    """What this process uses now: OpenCV's thread count and OMP_NUM_THREADS (reported per clip)."""
     import cv2
 
-    return {"opencv": cv2.getNumThreads(), "fft": _fft_workers, "omp": os.environ.get("OMP_NUM_THREADS", "")}
+    return {"opencv": cv2.getNumThreads(), "omp": os.environ.get("OMP_NUM_THREADS", "")}

@@ -231,20 +231,20 @@ def test_a_batch_of_two_jobs_shares_the_cores_out(clips, tmp_path):
     assert result.returncode == 0, result.stderr
     half = max(1, cores // 2)
     for record in manifest(out_dir):
-        assert record["threads"] == {"opencv": half, "fft": half, "omp": str(half)}, record
+        assert record["threads"] == {"opencv": half, "omp": str(half)}, record
     # one input alone uses every core it may run on, here with one core fewer
     run_on = sorted(os.sched_getaffinity(0))[: max(1, cores - 1)]
     result = run_cli("track", clips[0], "-m", "clf", "--out-dir", str(tmp_path / "one"), "-q", env=env,
                      affinity=set(run_on))
     assert result.returncode == 0, result.stderr
     (record,) = manifest(tmp_path / "one")
-    assert record["threads"] == {"opencv": len(run_on), "fft": len(run_on), "omp": ""}, record
+    assert record["threads"] == {"opencv": len(run_on), "omp": ""}, record
     # the environment default, capped so the jobs do not oversubscribe the cores
     result = run_cli("track", *clips[:2], "-m", "stk", "--out-dir", str(tmp_path / "env"), "-j", "2",
                      env={**env, "CONDTRACK_THREADS": str(cores)})
     assert result.returncode == 0, result.stderr
     for record in manifest(tmp_path / "env"):
-        assert record["threads"]["fft"] == half and record["threads"]["omp"] == str(half)
+        assert record["threads"]["opencv"] == half and record["threads"]["omp"] == str(half)
     assert (f"using {half} thread" in result.stderr) == (cores > half)
 
 
@@ -365,7 +365,7 @@ def test_more_threads_than_cores_are_capped_with_a_warning(clips, tmp_path):
     result = run_cli("track", clips[0], "-m", "stk", "--out-dir", str(tmp_path / "d"), affinity={0},
                      env={**{k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}, "CONDTRACK_THREADS": "100000"})
     assert result.returncode == 0 and "warning: 100000 threads exceeds the 1 core: using 1 thread\n" in result.stderr
-    assert manifest(tmp_path / "d")[0]["threads"] == {"opencv": 1, "fft": 1, "omp": ""}
+    assert manifest(tmp_path / "d")[0]["threads"] == {"opencv": 1, "omp": ""}
 
 
 def test_a_batch_output_that_is_the_queries_file_is_refused_before_work(clips, tmp_path):

@@ -41,7 +41,7 @@ class ClipRecord:
     queries_hash: str
     input_fingerprint: str = ""  #: ``hashes.input_fingerprint`` of the input
     visible: float | None = None  #: share of the tracked rows that are visible
-    threads: dict = field(default_factory=dict)  #: what the job's process used: opencv, fft, omp
+    threads: dict = field(default_factory=dict)  #: what the job's process used: opencv, omp
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=False)

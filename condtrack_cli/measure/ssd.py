@@ -12,7 +12,7 @@ The measurement of one point, all P points at once:
    search_max) and never smaller than the square of half-size search_min;
    candidates whose centre is outside the frame are excluded. The residual
    r_k(z) = sum_y [I~0(x0 + y) - I_k(z + y)]^2 of every offset of the batch's
-   largest window is sum I^2 - 2 sum I T + sum T^2: the cross term by FFT correlation,
+   largest window is sum I^2 - 2 sum I T + sum T^2: the cross term by ``cv2.matchTemplate``,
    the window sums of I and I^2 from the frame's integral images (once per frame).
    The integer z_k is the smallest residual in the gate; it is refined to the
    continuous minimum of eq. (6) within its cell by Gauss-Newton on the

@@ -1,13 +1,10 @@
-"""Matching costs between reference patches and a frame: patches, cost surfaces of eq. (6) by FFT, sub-pixel refinement."""
+"""Matching costs between reference patches and a frame: patches, cost surfaces of eq. (6), sub-pixel refinement."""
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
 import numpy as np
-from scipy import fft
-
-from condtrack_cli.threads import fft_workers
 
 #: Gauss-Newton steps of the sub-pixel refinement (median change after 3 steps: 0.01 px on photographs).
 _REFINE_STEPS = 3
@@ -34,11 +31,6 @@ def extract_templates(gray: np.ndarray, xy: np.ndarray, size: int) -> np.ndarray
     top = flat.take(rows0 + cols0) * (1 - wx) + flat.take(rows0 + cols1) * wx
     bottom = flat.take(rows1 + cols0) * (1 - wx) + flat.take(rows1 + cols1) * wx
     return (top * (1 - wy) + bottom * wy).astype(np.float32)
-
-
-def _spectrum(values: np.ndarray, length: int) -> np.ndarray:
-    """(P, length, length // 2 + 1) 2-D real FFT of (P, a, b) arrays zero-padded to length x length."""
-    return fft.rfft2(values, s=(length, length), workers=fft_workers())
 
 
 class FrameSums(NamedTuple):
@@ -70,8 +62,11 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
 
     Element [p, i, j] is the matching cost between templates[p] (t x t) and the frame
     patch centred on (centres[p, 0] + j - reach, centres[p, 1] + i - reach), frame
-    border replicated. The cross term sum I T' (T' = T - mean T) is an FFT correlation
-    of each point's frame patch; the window sums of I and I^2 come from the frame's
+    border replicated. The cross term sum I T' (T' = T - mean T) is ``cv2.matchTemplate``
+    (TM_CCORR, float32) of T' over each point's frame patch less m = mean T, one call per
+    point: at these sizes (t = 11, G <= 39) that loop is 3-6 times faster than one batched
+    FFT correlation of every patch (issue 26), and its float32 sums are within about 1e-6
+    of the patches' energies of float64 ones. The window sums of I and I^2 come from the frame's
     integral images ``sums`` (:func:`frame_sums` with a margin >= t // 2; computed here
     when None). Exact for every candidate whose centre is inside the frame; the others'
     values are unspecified (the caller excludes them). ``cost`` 'ssd': the SSD,
@@ -81,13 +76,14 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
     mean and contrast, sum [T' - a I']^2 = 2 sum T'^2 (1 - rho) (a = |T'| / |I'|, rho
     their correlation; a flat frame patch has rho = 0). See :func:`matching_cost`.
     """
+    import cv2
+
     height, width = gray.shape
     t = templates.shape[1]
     g = 2 * reach + 1
     if sums is None:
         sums = frame_sums(gray, t // 2)
     span = np.arange(-(reach + t // 2), reach + t // 2 + 1)
-    length = fft.next_fast_len(len(span), real=True)  # >= the patch side: the kept outputs do not wrap
     image = np.ascontiguousarray(gray).ravel()
     tmpl = templates.astype(np.float64)
     mean = tmpl.mean(axis=(1, 2), keepdims=True)
@@ -95,9 +91,11 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
     energy = (tmpl * tmpl).sum(axis=(1, 2))[:, None, None]  # sum T'^2
     rows = np.clip(centres[:, 1, None] + span, 0, height - 1)
     cols = np.clip(centres[:, 0, None] + span, 0, width - 1)
-    patch = image.take(rows[:, :, None] * width + cols[:, None, :]) - mean  # less mean T: small FFT round-off
-    cross = _spectrum(patch, length) * _spectrum(tmpl[:, ::-1, ::-1], length)  # sum_y T'(y) I(z + y)
-    sum_it = fft.irfft2(cross, s=(length, length), workers=fft_workers())[:, t - 1 : t - 1 + g, t - 1 : t - 1 + g]
+    patches = (image.take(rows[:, :, None] * width + cols[:, None, :]) - mean).astype(np.float32)  # less m: small sums
+    kernels = tmpl.astype(np.float32)
+    sum_it = np.empty((len(templates), g, g))  # sum_y T'(y) (I(z + y) - m) = sum_y T'(y) I(z + y)
+    for p in range(len(templates)):
+        sum_it[p] = cv2.matchTemplate(patches[p], kernels[p], cv2.TM_CCORR)
     sum_i, sum_sq = (_window_sums(table, sums.margin, centres, reach, t) for table in (sums.total, sums.squares))
     area = t * t
     if cost == "ssd":
