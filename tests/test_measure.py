@@ -209,7 +209,7 @@ def test_vectorised_search_equals_per_point_reference():
 
 @pytest.mark.parametrize("cost", ["ssd", "zero_mean", "normalised"])
 def test_cost_surfaces_equal_the_per_pair_cost_at_every_candidate_in_the_frame(cost):
-    """ssd_surfaces (float32 cross term, window sums from the frame's integral images) against
+    """ssd_surfaces (float32 cross term, window sums from the frame's box sums) against
     matching_cost on each candidate's patch taken directly, border replicated, for points
     in the middle, at the border and with candidates outside the frame (those are not compared);
     within the float32 bound (for the normalised cost, whose cross term X enters as
@@ -310,7 +310,7 @@ def test_occluded_points_get_infinite_R(cost, least_infinite):
     clear = measure(frame1, templates, xy + shift, gate, SSDSettings(cost=cost), 2.0)
     assert is_infinite(occluded.R[inside]).mean() >= least_infinite and clear.informative[inside].mean() > 0.7
     np.testing.assert_array_equal(occluded.informative[apart], clear.informative[apart])  # points whose search
-    for field in ("z", "R", "residual"):  # never sees the occluder: unchanged, but for the integral images' round-off
+    for field in ("z", "R", "residual"):  # never sees the occluder: unchanged, but for the box sums' round-off
         np.testing.assert_allclose(getattr(occluded, field)[apart], getattr(clear, field)[apart], rtol=1e-9, atol=1e-12)
 
 

@@ -13,7 +13,7 @@ The measurement of one point, all P points at once:
    candidates whose centre is outside the frame are excluded. The residual
    r_k(z) = sum_y [I~0(x0 + y) - I_k(z + y)]^2 of every offset of the batch's
    largest window is sum I^2 - 2 sum I T + sum T^2: the cross term by ``cv2.matchTemplate``,
-   the window sums of I and I^2 from the frame's integral images (once per frame).
+   the window sums of I and I^2 from the frame's box sums (once per frame).
    The integer z_k is the smallest residual in the gate; it is refined to the
    continuous minimum of eq. (6) within its cell by Gauss-Newton on the
    bilinearly interpolated frame (a parabola through the 3 x 3 residuals is
@@ -110,7 +110,7 @@ def measure(
     if not known.any():
         return Measurement(z, R, residual, informative)
     half_sizes = _half_sizes(gate_cov, settings)
-    sums = frame_sums(gray, settings.template // 2)
+    sums = frame_sums(gray, settings.template)
     for points in _search_groups(half_sizes, known, settings):
         part = _measure_group(gray, sums, templates[points], predicted[points], gate_cov[points],
                               half_sizes[points], settings, sigma)

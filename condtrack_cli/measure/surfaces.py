@@ -34,26 +34,27 @@ def extract_templates(gray: np.ndarray, xy: np.ndarray, size: int) -> np.ndarray
 
 
 class FrameSums(NamedTuple):
-    """Integral images of a frame with its border replicated ``margin`` px on every side (:func:`frame_sums`).
+    """Window sums of a frame at every pixel (:func:`frame_sums`), border replicated.
 
-    ``total`` and ``squares``: (H + 2 margin + 1, W + 2 margin + 1) float64, element [i, j]
-    the sum of I (of I^2) over the padded frame's rows < i and columns < j.
+    ``total`` and ``squares``: (H, W) float64, element [y, x] the sum of I (of I^2) over the
+    ``side`` x ``side`` window centred on pixel (x, y).
     """
 
     total: np.ndarray
     squares: np.ndarray
-    margin: int
+    side: int
 
 
-def frame_sums(gray: np.ndarray, margin: int) -> FrameSums:
-    """:class:`FrameSums` of the (H, W) float32 frame ``gray`` (``cv2.integral2``, float64 sums): any window's
-    sum of I or I^2 in four look-ups, computed once per frame for every point."""
+def frame_sums(gray: np.ndarray, side: int) -> FrameSums:
+    """:class:`FrameSums` of the (H, W) float32 frame ``gray`` for windows of odd ``side`` (px): two box filters
+    (float64, border replicated), computed once per frame; each candidate's window sums are then one look-up."""
     import cv2
 
-    padded = cv2.copyMakeBorder(np.ascontiguousarray(gray, np.float32), margin, margin, margin, margin,
-                                cv2.BORDER_REPLICATE)
-    total, squares = cv2.integral2(padded, sdepth=cv2.CV_64F, sqdepth=cv2.CV_64F)
-    return FrameSums(total, squares, margin)
+    frame = np.asarray(gray, np.float64)
+    window = (side, side)
+    total = cv2.boxFilter(frame, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
+    squares = cv2.sqrBoxFilter(frame, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
+    return FrameSums(total, squares, side)
 
 
 def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, reach: int,
@@ -66,9 +67,8 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
     (TM_CCORR, float32) of T' over each point's frame patch less m = mean T, one call per
     point: at these sizes (t = 11, G <= 39) that loop is 3-6 times faster than one batched
     FFT correlation of every patch (issue 26), and its float32 sums are within about 1e-6
-    of the patches' energies of float64 ones. The window sums of I and I^2 come from the frame's
-    integral images ``sums`` (:func:`frame_sums` with a margin >= t // 2; computed here
-    when None). Exact for every candidate whose centre is inside the frame; the others'
+    of the patches' energies of float64 ones. The window sums of I and I^2 are look-ups in the frame's
+    box sums ``sums`` (:func:`frame_sums` of t x t windows; computed here when None). Exact for every candidate whose centre is inside the frame; the others'
     values are unspecified (the caller excludes them). ``cost`` 'ssd': the SSD,
     sum [T - I]^2 = sum I^2 - 2 sum I T' - 2 m sum I + t^2 m^2 + sum T'^2 (m = mean T).
     'zero_mean': the SSD after giving the frame patch the template's mean,
@@ -82,7 +82,9 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
     t = templates.shape[1]
     g = 2 * reach + 1
     if sums is None:
-        sums = frame_sums(gray, t // 2)
+        sums = frame_sums(gray, t)
+    if sums.side != t:
+        raise ValueError(f"frame_sums of {sums.side} px windows for {t} px templates")
     span = np.arange(-(reach + t // 2), reach + t // 2 + 1)
     image = np.ascontiguousarray(gray).ravel()
     tmpl = templates.astype(np.float64)
@@ -96,7 +98,7 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
     sum_it = np.empty((len(templates), g, g))  # sum_y T'(y) (I(z + y) - m) = sum_y T'(y) I(z + y)
     for p in range(len(templates)):
         sum_it[p] = cv2.matchTemplate(patches[p], kernels[p], cv2.TM_CCORR)
-    sum_i, sum_sq = (_window_sums(table, sums.margin, centres, reach, t) for table in (sums.total, sums.squares))
+    sum_i, sum_sq = (_window_sums(table, centres, reach) for table in (sums.total, sums.squares))
     area = t * t
     if cost == "ssd":
         m = mean[:, :, :1]
@@ -109,23 +111,15 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
     return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
 
 
-def _window_sums(table: np.ndarray, margin: int, centres: np.ndarray, reach: int, t: int) -> np.ndarray:
-    """(P, g, g) sums over the t x t window of every candidate, g = 2 reach + 1, from an integral image.
-
-    table: a :class:`FrameSums` integral image, frame padded by ``margin``; centres: (P, 2)
-    integer (x, y). The window of candidate [i, j] starts at frame row
-    centres_y - reach - t // 2 + i (table row: that + margin) and column likewise; its sum
-    is table[bottom, right] - table[top, right] - table[bottom, left] + table[top, left],
-    with bottom = top + t. Look-ups outside the table are clamped (their candidates'
-    centres lie outside the frame).
-    """
-    g = 2 * reach + 1
-    lines = np.arange(g + t) + margin - reach - t // 2  # table rows (columns) of every window's top and bottom
-    rows = np.clip(centres[:, 1, None] + lines, 0, table.shape[0] - 1)
-    cols = np.clip(centres[:, 0, None] + lines, 0, table.shape[1] - 1)
-    corners = table.ravel().take(rows[:, :, None] * table.shape[1] + cols[:, None, :])  # (P, g + t, g + t)
-    top, bottom = slice(0, g), slice(t, t + g)
-    return corners[:, bottom, bottom] - corners[:, top, bottom] - corners[:, bottom, top] + corners[:, top, top]
+def _window_sums(table: np.ndarray, centres: np.ndarray, reach: int) -> np.ndarray:
+    """(P, g, g) window sums of every candidate, g = 2 reach + 1: ``table`` (a :class:`FrameSums` map, (H, W)) at
+    centres (P, 2) integer (x, y) + (j - reach, i - reach). Look-ups outside the frame are clamped (their
+    candidates' centres lie outside the frame)."""
+    height, width = table.shape
+    offsets = np.arange(-reach, reach + 1)
+    rows = np.clip(centres[:, 1, None] + offsets, 0, height - 1)
+    cols = np.clip(centres[:, 0, None] + offsets, 0, width - 1)
+    return table.ravel().take(rows[:, :, None] * width + cols[:, None, :])
 
 
 def matching_cost(templates: np.ndarray, patches: np.ndarray, cost: str) -> np.ndarray:
