@@ -98,10 +98,10 @@ the filter's own covariance and adds back each frame's excess
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import expit
 
 from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.gauss2 import log_gauss2
+from condtrack_cli.special import expit
 
 #: Weight kept by the pooled innovation statistics from one frame to the next.
 FORGET = 0.5

@@ -8,11 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from condtrack_cli.special import logsumexp
+
 
 def normalise(log_w: np.ndarray) -> np.ndarray:
     """(n, N) log-weights -> normalised log-weights (each row sums to 1 in linear space)."""
-    top = log_w.max(axis=1, keepdims=True)
-    return log_w - (top + np.log(np.exp(log_w - top).sum(axis=1, keepdims=True)))
+    return log_w - logsumexp(log_w, axis=1, keepdims=True)
 
 
 def _row_searchsorted(edges: np.ndarray, values: np.ndarray) -> np.ndarray:

@@ -37,9 +37,9 @@ frame k-1 keeps its filtered estimate as the last frame of its segment.
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import logsumexp
 
 from condtrack_cli.filters.gauss2 import inverse2
+from condtrack_cli.special import logsumexp
 
 
 class TransitionLog:

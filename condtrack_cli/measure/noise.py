@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from scipy import special
+
+from condtrack_cli.special import normal_quantile
 
 
 #: Std of the rounding of grey levels to integers (grey levels): the least noise of an 8-bit frame.
@@ -41,7 +42,7 @@ def estimate_noise_sigma(gray: np.ndarray) -> float:
     gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)
     structure = cv2.boxFilter(gx * gx + gy * gy, -1, (7, 7), borderType=cv2.BORDER_REFLECT)[1:-1, 1:-1]
     flattest = structure <= np.quantile(structure, 0.25)
-    sigma = float(np.median(np.abs(response[flattest])) / (special.ndtri(0.75) * 6.0))
+    sigma = float(np.median(np.abs(response[flattest])) / (normal_quantile(0.75) * 6.0))
     return max(sigma, _QUANTISATION_STD)
 
 
@@ -53,5 +54,5 @@ def noise_threshold(sigma: float, m: int, alpha: float) -> float:
     quantile q, i.e. r < sigma_d^2 (q + sqrt(2 m))^2 / 2.
     """
     sigma_d2 = 2.0 * sigma**2
-    q = special.ndtri(1.0 - alpha)
+    q = normal_quantile(1.0 - alpha)
     return sigma_d2 * (q + np.sqrt(2.0 * m)) ** 2 / 2.0  # eq. (10) solved for r

@@ -11,10 +11,10 @@ from typing import Literal
 
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
-from scipy import special
 
 from condtrack_cli.measure.noise import noise_threshold
 from condtrack_cli.settings import StageSettings
+from condtrack_cli.special import chi2_quantiles, logsumexp, xlogx
 
 
 class SSDSettings(StageSettings):
@@ -173,7 +173,7 @@ def response(
     excess = np.where(available, r - r_min[:, None, None], np.inf)
     with np.errstate(invalid="ignore"):
         energy = np.where(excess == 0, 0.0, c[:, None, None] * excess)  # c (r - r_min), with inf * 0 = 0
-    log_d = -energy - special.logsumexp(-energy, axis=(1, 2), keepdims=True)
+    log_d = -energy - logsumexp(-energy, axis=(1, 2), keepdims=True)
     d = np.exp(log_d)  # eq. (8): D_k = exp(-c r_k) / sum_W exp(-c r_k)
 
     delta = _parabola_vertex(r_raw) if offset is None else np.asarray(offset, np.float64)  # z_k - centre (px)
@@ -190,9 +190,9 @@ def response(
     # likelihood-ratio form G = 2 N KL(D_k || uniform); with N = 49 at 5%, the uniform law is rejected when
     # KL > 0.67 nat: D_k fills less than half of W. ``pearson``: the paper's "test du chi-deux",
     # X^2 = sum (N D_k - 1)^2 = N^2 sum D_k^2 - N (it rejects more readily: a peak on a few cells weighs more).
-    entropy = -special.xlogy(d, d).sum(axis=(1, 2))
+    entropy = -xlogx(d).sum(axis=(1, 2))
     kl_uniform = np.log(n_available) - entropy
-    critical = 2.0 * special.gammaincinv(np.maximum(n_available - 1, 1) / 2, 1.0 - settings.uniform_alpha)  # chi2 quantile
+    critical = chi2_quantiles(1.0 - settings.uniform_alpha, np.maximum(n_available - 1, 1))
     if settings.uniform_test == "pearson":
         statistic = np.where(available, np.square(n_available[:, None, None] * d - 1.0), 0.0).sum(axis=(1, 2))
     else:
@@ -202,8 +202,8 @@ def response(
     rxx, rxy, ryy = R[:, 0, 0, None, None], R[:, 0, 1, None, None], R[:, 1, 1, None, None]
     quadratic = ryy * du * du - 2 * rxy * du * dv + rxx * dv * dv
     log_g = np.where(available, -0.5 * quadratic / det[:, None, None], -np.inf)  # N(z_k, R_k) on W
-    log_g = np.where(available, log_g - special.logsumexp(log_g, axis=(1, 2), keepdims=True), 0.0)
-    kl_gauss = (special.xlogy(d, d) - d * log_g).sum(axis=(1, 2))
+    log_g = np.where(available, log_g - logsumexp(log_g, axis=(1, 2), keepdims=True), 0.0)
+    kl_gauss = (xlogx(d) - d * log_g).sum(axis=(1, 2))
     if settings.ambiguity_ratio is None:  # off (the paper's)
         one_mode = np.ones(count, bool)
     else:
