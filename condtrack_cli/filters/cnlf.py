@@ -224,6 +224,11 @@ class CNLFTracker(Tracker):
         field = motion.local_field
         x = self.particles[index]  # (n, N, 2)
         mu = x + field.displacement(x)  # eq. (5) mean
+        # Off the frame the local field has no support (the content there has left it) and is biased: particles
+        # off the frame, or that both motions take off it, move by the dominant motion (docs/departures.md).
+        dominant = x + displacement(motion.global_fit, x.reshape(-1, 2)).reshape(x.shape)
+        off = ~self.info.contains(x) | ~(self.info.contains(mu) | self.info.contains(dominant))
+        mu = np.where(off[..., None], dominant, mu)
         covered = self._covered(index, x_prev, found_before, field, motion.global_fit)
         if covered.any():
             mu[covered] = x[covered] + self._layer_displacement(index[covered], x[covered], motion.global_fit)
