@@ -10,9 +10,11 @@ from condtrack_cli.config import load_config
 from condtrack_cli.evaluate.score import score_tracks
 from condtrack_cli.filters import kalman
 from condtrack_cli.filters.auto import extrapolation_spread, lost_on_local
-from condtrack_cli.filters.cnlf import CNLFSettings, propagate, resample
+from condtrack_cli.filters.cnlf import CNLFSettings, particle_means, propagate, resample
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise
+from condtrack_cli.motion.model import MotionFit
 from condtrack_cli.registry import method_code
+from condtrack_cli.types import SequenceInfo
 
 from conftest import SAMPLES, sample_inputs
 
@@ -234,3 +236,31 @@ def test_layer_jump_keeps_covered_points_off_their_occluder():
         delta[jump] = result["delta_avg"]
     assert close[2.0] >= 0.7 and close[None] <= 0.15
     assert delta[2.0] >= delta[None] + 0.1
+
+
+class _ConstantField:
+    """A local field that moves every position by ``step`` px (LocalField.displacement's contract)."""
+
+    def __init__(self, step):
+        self.step = np.asarray(step, float)
+
+    def displacement(self, xy):
+        return np.broadcast_to(self.step, np.shape(xy)).copy()
+
+
+def test_particles_off_the_frame_move_by_the_dominant_motion():
+    """particle_means on a 100 x 80 frame, dominant motion 20 px to the left, local field 3 px to the right
+    (wrong off the frame, where it has no support) or 15 px to the left: a particle inside keeps the local
+    motion, even where the dominant one takes it off; one off the frame, or that both motions take off it,
+    moves by the dominant motion."""
+    info = SequenceInfo("test", 100, 80, 10, 0.0)
+    fit = MotionFit("translation", np.array([-20.0, 0.0]), np.eye(2), np.zeros(2), 1.0, np.ones((2, 2), np.float32),
+                    1.0)
+    x = np.array([[[50.0, 40.0], [5.0, 40.0], [-3.0, 40.0], [99.6, 40.0]]])
+    np.testing.assert_allclose(particle_means(info, x, _ConstantField([3.0, 0.0]), fit),
+                               [[[53.0, 40.0], [8.0, 40.0], [-23.0, 40.0], [79.6, 40.0]]])
+    np.testing.assert_allclose(particle_means(info, x[:, :2], _ConstantField([-15.0, 0.0]), fit),
+                               [[[35.0, 40.0], [-15.0, 40.0]]])
+    assert info.contains(np.array([[-0.5, -0.5], [99.5, 79.5], [99.6, 0.0], [np.nan, 0.0]])).tolist() == \
+        [True, True, False, False]
+    assert info.contains(np.array([[-2.0, 3.0]]), margin=2.0).tolist() == [True]
