@@ -287,7 +287,7 @@ def test_auto_rule_5_keeps_points_the_card_sweeps_over_on_the_background_and_not
     background's motion and is reported not visible, instead of riding on the card for the frame its
     neighbourhood's field turns to the card's. Measured: background rows covered by the card within 4 px
     of the truth 0.85 with rule 5 against 0.25 without (``occluder_jump: null``), reported not visible
-    0.977 against 0.968; <δ_avg 0.913 against 0.899."""
+    0.977 against 0.968; <δ_avg 0.941 against 0.899."""
     from condtrack_cli.frames.readers import FrameSettings, open_frames
     from condtrack_cli.frames.synthetic import make_scene, write_scene
     from condtrack_cli.evaluate.groundtruth import load_gt_csv
@@ -299,7 +299,7 @@ def test_auto_rule_5_keeps_points_the_card_sweeps_over_on_the_background_and_not
     queries, truth = read_queries(folder / "queries.csv", source.info), load_gt_csv(folder / "tracks.csv")
     after_query = np.arange(scene.frames.shape[0])[None] > scene.queries.frame[:, None]
     covered = ~scene.visible & source.info.contains(scene.tracks) & after_query & (scene.layer == 0)[:, None]
-    assert covered.sum() >= 150
+    assert covered.sum() >= 200
     close, hidden, delta = {}, {}, {}
     for jump in ("null", 2.0):
         config = load_config(None, method="auto", overrides=[f"filter.auto.occluder_jump={jump}"])
@@ -309,4 +309,4 @@ def test_auto_rule_5_keeps_points_the_card_sweeps_over_on_the_background_and_not
         delta[jump] = score_tracks(tracks, truth)[0]["delta_avg"]
     assert close[2.0] >= 0.75 and close[2.0] >= close["null"] + 0.4
     assert hidden[2.0] >= 0.95
-    assert delta[2.0] >= delta["null"] + 0.01
+    assert delta[2.0] >= delta["null"] + 0.02
