@@ -310,3 +310,29 @@ def test_auto_rule_5_keeps_points_the_card_sweeps_over_on_the_background_and_not
     assert close[2.0] >= 0.75 and close[2.0] >= close["null"] + 0.4
     assert hidden[2.0] >= 0.95
     assert delta[2.0] >= delta["null"] + 0.02
+
+
+def test_rule_5_leaves_a_point_whose_measurements_favoured_the_local_motion():
+    """Rule 5 (``AutoTracker._swept``) on two found CNLF points, both with the card's 25 px step around them
+    while the background pans 1 px: the one whose measurements could not tell the motions apart (mean
+    evidence 0) is swept; the one whose measurements favoured the local motion (mean evidence 2 > 0.5, as on
+    merton1's wide baseline, where it cost 0.963 -> 0.870 without this condition) is not."""
+    from types import SimpleNamespace
+
+    from condtrack_cli.filters.auto import AutoSettings, make_auto
+    from condtrack_cli.filters.clf import CLFSettings
+    from condtrack_cli.motion.state_noise import StateNoise
+    from condtrack_cli.types import Queries
+
+    info = SequenceInfo("test", 100, 80, 10, 0.0)
+    queries = Queries(np.arange(2), np.zeros(2, np.int64), np.array([[40.0, 40.0], [60.0, 40.0]]))
+    auto = make_auto(AutoSettings(), queries=queries, info=info, rng=np.random.default_rng(0),
+                     measure=SimpleNamespace(template_side=9), gamma=9.0, state_noise=StateNoise(0.1, 1.0, 9),
+                     smooth=False, store_particles=False, store_segmentation=False,
+                     filter_settings={"clf": CLFSettings(), "cnlf": CNLFSettings()})
+    auto.xy[:], auto.visible[:], auto.on_cnlf[:] = queries.xy, True, True
+    auto.velocity[:] = [1.0, 0.0]
+    auto.evidence[:], auto.evidence_weight[:] = [0.0, 2.0], 1.0
+    fit = MotionFit("translation", np.array([1.0, 0.0]), np.eye(2), np.zeros(2), 1.0, np.ones((2, 2), np.float32), 1.0)
+    assert auto._swept(np.arange(2), fit, _ConstantField([25.0, 0.0])).tolist() == [True, False]
+    assert auto._swept(np.arange(2), fit, _ConstantField([1.5, 0.0])).tolist() == [False, False]
