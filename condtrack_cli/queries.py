@@ -106,7 +106,7 @@ def checked_queries(where: str, point_id: np.ndarray, frame: np.ndarray, xy: np.
     if bad_frame.any():
         line = int(np.argmax(bad_frame)) + first_row
         raise CondtrackError(f"{where}: row {line}: frame {frame[line - first_row]} is outside the sequence (0..{info.n_frames - 1})")
-    inside = (xy[:, 0] >= -0.5) & (xy[:, 0] <= info.width - 0.5) & (xy[:, 1] >= -0.5) & (xy[:, 1] <= info.height - 0.5)
+    inside = info.contains(xy)
     if not inside.all():
         line = int(np.argmax(~inside)) + first_row
         raise CondtrackError(

@@ -25,6 +25,14 @@ class SequenceInfo:
     n_frames: int
     fps: float  #: frames per second; 0.0 when the input has no timing (a folder)
 
+    def contains(self, xy: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """(...) bool: which of the (..., 2) positions ``xy`` lie inside the frame, [-0.5, W-0.5] x [-0.5, H-0.5]
+        (the pixel convention above) widened by ``margin`` px on every side; False for NaN."""
+        x, y = xy[..., 0], xy[..., 1]
+        low = -0.5 - margin
+        with np.errstate(invalid="ignore"):
+            return (x >= low) & (x <= self.width - 1 - low) & (y >= low) & (y <= self.height - 1 - low)
+
 
 @dataclass(frozen=True)
 class Queries:

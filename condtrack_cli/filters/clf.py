@@ -140,9 +140,7 @@ class MDRTracker(Tracker):
             self.xy[index], self.cov[index] = kalman.predict(x, self.cov[index], A, b, Q)
         else:
             self.xy[index], self.cov[index], _ = self._predict(index, motion)
-        x = self.xy[index]
-        w, h = self.info.width, self.info.height
-        self.visible[index] = (x[:, 0] >= -0.5) & (x[:, 0] <= w - 0.5) & (x[:, 1] >= -0.5) & (x[:, 1] <= h - 0.5)
+        self.visible[index] = self.info.contains(self.xy[index])
 
 
 class CLFTracker(MDRTracker):

@@ -76,6 +76,26 @@ class CNLFSettings(MeasuredFilterSettings):
     )
 
 
+def departs(step: np.ndarray, layer: np.ndarray, jump: float) -> np.ndarray:
+    """(n,) bool: the (n, 2) steps depart from their layer's (n, 2) steps by more than max(``jump`` px, the layer's
+    step): an occluder's motion, not a change of the layer's own (False where either is NaN)."""
+    with np.errstate(invalid="ignore"):
+        return np.linalg.norm(step - layer, axis=-1) > np.maximum(jump, np.linalg.norm(layer, axis=-1))
+
+
+def particle_means(info: SequenceInfo, x: np.ndarray, field, fit) -> np.ndarray:
+    """(n, N, 2) one-step means of particles x (n, N, 2): x + U_local(x) (eq. 5), but x + U_dominant(x) for the
+    particles off the frame and those that both motions take off it.
+
+    Off the frame the local field has no support (the content there has left the frame) and is biased;
+    the dominant motion, fitted on the whole frame, holds there (docs/departures.md).
+    """
+    local = x + field.displacement(x)
+    dominant = x + displacement(fit, x.reshape(-1, 2)).reshape(x.shape)
+    off = ~info.contains(x) | ~(info.contains(local) | info.contains(dominant))
+    return np.where(off[..., None], dominant, local)
+
+
 def mixture_moments(log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean (n, 2) and covariance (n, 2, 2) of sum_i w^(i) N(mu^(i), Q^(i)) (the CNLF's gate, paper §5.3).
 
@@ -223,7 +243,7 @@ class CNLFTracker(Tracker):
         found_before = self.visible[index].copy()
         field = motion.local_field
         x = self.particles[index]  # (n, N, 2)
-        mu = x + field.displacement(x)  # eq. (5) mean
+        mu = particle_means(self.info, x, field, motion.global_fit)  # eq. (5) mean, the dominant motion off the frame
         covered = self._covered(index, x_prev, found_before, field, motion.global_fit)
         if covered.any():
             mu[covered] = x[covered] + self._layer_displacement(index[covered], x[covered], motion.global_fit)
@@ -264,9 +284,7 @@ class CNLFTracker(Tracker):
             return np.zeros(len(index), bool)
         known = ~found_before & np.isfinite(self.layer_step[index, 0])
         layer = self._layer_displacement(index, x_prev[:, None], fit)[:, 0]
-        departure = np.linalg.norm(field.displacement(x_prev) - layer, axis=1)
-        with np.errstate(invalid="ignore"):
-            return known & (departure > np.maximum(jump, np.linalg.norm(layer, axis=1)))
+        return known & departs(field.displacement(x_prev), layer, jump)
 
     def _remember_layer(self, index: np.ndarray, x_prev: np.ndarray, found_before: np.ndarray, found: np.ndarray,
                         fit) -> None:

@@ -234,8 +234,8 @@ def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, in
         raise CondtrackError(f"{tracks_path} has rows up to frame {tracks.xy.shape[1] - 1}, but {ours}")
     if extra:
         warn(f"{tracks_path} has rows up to frame {tracks.xy.shape[1] - 1}, but {ours}: was it tracked on another input?")
-    x, y = tracks.xy[..., 0][tracks.visible], tracks.xy[..., 1][tracks.visible]
-    outside = int(((x < -0.5) | (x > info.width - 0.5) | (y < -0.5) | (y > info.height - 0.5)).sum())
+    shown = tracks.xy[tracks.visible]
+    outside = int((np.isfinite(shown).all(axis=-1) & ~info.contains(shown)).sum())
     if outside:
         warn(f"{tracks_path} has {outside} visible position(s) outside the {info.width}x{info.height} frame of "
              f"{info.input}: was it tracked on another input?")
