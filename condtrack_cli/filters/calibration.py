@@ -106,15 +106,37 @@ from condtrack_cli.filters.gauss2 import log_gauss2
 #: Weight kept by the pooled innovation statistics from one frame to the next.
 FORGET = 0.5
 
-#: 1 / (nu - 2) of a row whose covariance is the filter's own (excess share 0), and its growth per unit share
-#: (module docstring, "Student-t"): nu from 2.25 (share 0) to 2.14 (share 1). Fitted on synthetic scenes, seeds 1-2.
-TAIL_CORE = 4.0
-TAIL_EXCESS = 3.2
+#: The Student-t's scale over its covariance, per term of the reported covariance (module docstring, "Student-t"):
+#: the filter's own max(lambda, 1) Sigma gets min(CORE_GAIN lambda_p^CORE_POWER, CORE_MAX), lambda_p the point's own
+#: innovation consistency; the aperture offset A, the rest of D and the coasting C get constant ratios.
+#: Fitted together on the synthetic scenes of seeds 1 and 2 and the seven shared real sets as a whole.
+CORE_GAIN = 0.32
+CORE_POWER = 0.17
+CORE_MAX = 0.8
+RATIO_APERTURE = 1.0
+RATIO_DRIFT = 0.013
+RATIO_COAST = 0.065
+#: Least ratio of a row (nu >= 2 / (1 - RATIO_MIN)).
+RATIO_MIN = 0.011
+
+#: Pseudo-count of the pooled lambda in each point's own lambda_p (found frames, forgotten as the pooled sums).
+POINT_PRIOR = 1.0
 
 
-def tail_dof(share: np.ndarray) -> np.ndarray:
-    """(n,) Student-t nu for rows whose reported covariance owes ``share`` (n,) of its trace to D + C."""
-    return 2.0 + 1.0 / (TAIL_CORE + TAIL_EXCESS * np.clip(np.nan_to_num(share), 0.0, 1.0))
+def scale_ratio(own: np.ndarray, aperture: np.ndarray, drift: np.ndarray, coast: np.ndarray,
+                consistency: np.ndarray) -> np.ndarray:
+    """(n,) rho = tr(Student-t scale) / tr(covariance) of rows whose reported covariance is the sum of the traces
+    ``own`` (the filter's, lambda-scaled), ``aperture`` (A), ``drift`` (D - A) and ``coast`` (C), all (n,) px^2,
+    for points of innovation consistency ``consistency`` (n,) lambda_p; in (0, 1)."""
+    core = np.minimum(CORE_GAIN * np.maximum(consistency, 0.0) ** CORE_POWER, CORE_MAX)
+    total = own + aperture + drift + coast
+    scale = core * own + RATIO_APERTURE * aperture + RATIO_DRIFT * drift + RATIO_COAST * coast
+    return np.clip(scale / np.where(total > 0, total, np.inf), RATIO_MIN, 0.999)
+
+
+def tail_dof(ratio: np.ndarray) -> np.ndarray:
+    """(n,) Student-t nu whose scale matrix is ``ratio`` (n,) times its covariance: nu / (nu - 2) = 1 / ratio."""
+    return 2.0 / (1.0 - ratio)
 
 
 class ErrorModel:
@@ -128,14 +150,23 @@ class ErrorModel:
         self.coasted = np.zeros(n_points)  #: t, frames since the point was last found
         self.detour = np.zeros((n_points, 2))  #: sum over the frames coasted of the dynamics' disagreement, px
         self.reported = np.full((n_points, 2, 2), np.nan)  #: the covariance reported, px^2
-        self.excess_share = np.zeros(n_points)  #: share of D + C in the reported covariance's trace
+        self.aperture_offset = np.zeros((n_points, 2, 2))  #: A, the part of D a query started with, px^2
+        self.ratio = np.full(n_points, np.nan)  #: rho, the Student-t's scale over the reported covariance
         self._nis = np.zeros(2)  #: forgotten sums of NIS and of the count of found points
         self._miss = np.zeros(2)  #: forgotten sums of |nu|^2 and of the count
+        self._point_nis = np.zeros((n_points, 2))  #: each point's forgotten sums of NIS and of its found frames
 
     @property
     def scale(self) -> float:
         """lambda: pooled mean NIS / 2 (1 before any point was found)."""
         return self._nis[0] / (2.0 * self._nis[1]) if self._nis[1] > 0 else 1.0
+
+    @property
+    def consistency(self) -> np.ndarray:
+        """(P,) lambda_p: each point's forgotten mean NIS / 2, its sums joined by ``POINT_PRIOR`` found frames at the
+        pooled lambda (so a point never found has the pooled lambda)."""
+        prior = POINT_PRIOR * self.scale
+        return (self._point_nis[:, 0] / 2.0 + prior) / (self._point_nis[:, 1] + POINT_PRIOR)
 
     @property
     def miss(self) -> float:
@@ -148,21 +179,26 @@ class ErrorModel:
         not coasting, D their aperture offset (0 where they pass the trackability test, or without ``gray``)."""
         offset = self.aperture.offset(gray, xy, sigma) if self.aperture is not None and gray is not None else 0.0
         self.drift[index] = offset
+        self.aperture_offset[index] = offset
+        self._point_nis[index] = 0.0
         self.coasted[index] = 0
         self.detour[index] = 0.0
         self._report(index, sigma, self.drift[index])
 
-    def _report(self, index: np.ndarray, own: np.ndarray, excess: np.ndarray) -> None:
+    def _report(self, index: np.ndarray, own: np.ndarray, excess: np.ndarray, coast: np.ndarray | float = 0.0) -> None:
         """Reported covariance of points ``index``: the filter's (n, 2, 2) ``own`` plus the (n, 2, 2) ``excess``
-        D + C, and the share of the excess in its trace (``tail_dof``)."""
+        D + C, C = ``coast`` (n, 2, 2); and the Student-t's scale ratio (``scale_ratio``)."""
         self.reported[index] = own + excess
-        total = np.trace(self.reported[index], axis1=1, axis2=2)
-        self.excess_share[index] = np.trace(excess, axis1=1, axis2=2) / np.where(total > 0, total, np.inf)
+        traces = [np.trace(m, axis1=1, axis2=2) for m in (own, excess, self.aperture_offset[index])]
+        coasting = np.trace(coast, axis1=1, axis2=2) if np.ndim(coast) else np.zeros(len(index))
+        aperture = np.minimum(traces[2], traces[1] - coasting)
+        self.ratio[index] = scale_ratio(traces[0], aperture, traces[1] - coasting - aperture, coasting,
+                                        self.consistency[index])
 
     @property
     def dof(self) -> np.ndarray:
         """(P,) nu of each point's Student-t predictive distribution (module docstring), NaN before its start."""
-        return np.where(np.isnan(self.reported).any(axis=(1, 2)), np.nan, tail_dof(self.excess_share))
+        return np.where(np.isnan(self.reported).any(axis=(1, 2)), np.nan, tail_dof(np.nan_to_num(self.ratio, nan=0.5)))
 
     def _coasting(self, frames: np.ndarray, detour: np.ndarray) -> np.ndarray:
         """C (n, 2, 2) after (n,) ``frames`` steps on the dynamics summing to the (n, 2) ``detour`` disagreement (px^2).
@@ -172,9 +208,10 @@ class ErrorModel:
         return (frames**2 * self.miss + 0.5 * np.einsum("ni,ni->n", detour, detour))[:, None, None] * np.eye(2)
 
     def begin_frame(self) -> None:
-        """Before a frame's steps: forget part of the pooled innovation statistics."""
+        """Before a frame's steps: forget part of the pooled and per-point innovation statistics."""
         self._nis *= FORGET
         self._miss *= FORGET
+        self._point_nis *= FORGET
 
     def update(self, index: np.ndarray, predicted: np.ndarray, s_pred: np.ndarray, z: np.ndarray, R: np.ndarray,
                found: np.ndarray, xy: np.ndarray, sigma: np.ndarray, retaken: np.ndarray,
@@ -192,6 +229,7 @@ class ErrorModel:
             nu = z[found] - predicted[found]
             nis = np.einsum("ni,ni->n", nu, np.linalg.solve(S[found], nu[..., None])[..., 0])
             self._nis += (nis.sum(), nis.size)
+            self._point_nis[index[found]] += np.column_stack([nis, np.ones_like(nis)])
             self._miss += ((nu * nu).sum(), nu.shape[0])
         lam = self.scale
         # Where the patch may be before this frame's match (lambda s_pred holds this frame's one-step miss; the
@@ -214,5 +252,6 @@ class ErrorModel:
         scaled = max(lam, 1.0) * sigma
         self.coasted[index] = np.where(found, 0, self.coasted[index] + 1)
         self.detour[index] = np.where(found[:, None], 0.0, self.detour[index] + disagreement)
-        self._report(index, scaled, self.drift[index] + self._coasting(self.coasted[index], self.detour[index]))
+        coast = self._coasting(self.coasted[index], self.detour[index])
+        self._report(index, scaled, self.drift[index] + coast, coast)
         self.drift[index[retaken]] += lam * sigma[retaken]  # the new reference's offset, from the next frame on
