@@ -205,22 +205,21 @@ class ErrorModel:
         self._point_nis[index] = 0.0
         self.coasted[index] = 0
         self.detour[index] = 0.0
-        self._report(index, sigma, self.drift[index])
+        self._report(index, sigma, self.drift[index], np.zeros_like(self.drift[index]))
 
-    def _report(self, index: np.ndarray, own: np.ndarray, excess: np.ndarray, coast: np.ndarray | float = 0.0) -> None:
-        """Reported covariance of points ``index``: the filter's (n, 2, 2) ``own`` plus the (n, 2, 2) ``excess``
-        D + C, C = ``coast`` (n, 2, 2); and the Student-t's scale ratio (``scale_ratio``)."""
-        self.reported[index] = own + excess
-        traces = [np.trace(m, axis1=1, axis2=2) for m in (own, excess, self.aperture_offset[index])]
-        coasting = np.trace(coast, axis1=1, axis2=2) if np.ndim(coast) else np.zeros(len(index))
-        aperture = np.minimum(traces[2], traces[1] - coasting)
-        self.ratio[index] = scale_ratio(traces[0], aperture, traces[1] - coasting - aperture, coasting,
-                                        self.consistency[index])
+    def _report(self, index: np.ndarray, own: np.ndarray, drift: np.ndarray, coast: np.ndarray) -> None:
+        """Reported covariance of points ``index``: the filter's (n, 2, 2) ``own`` plus the (n, 2, 2) ``drift`` D and
+        ``coast`` C; and the Student-t's scale over it (``scale_ratio``), A taken as the part of D it still is."""
+        self.reported[index] = own + (drift + coast)
+        own, drift, coast, offset = (np.trace(m, axis1=1, axis2=2)
+                                     for m in (own, drift, coast, self.aperture_offset[index]))
+        aperture = np.minimum(offset, drift)
+        self.ratio[index] = scale_ratio(own, aperture, drift - aperture, coast, self.consistency[index])
 
     @property
     def dof(self) -> np.ndarray:
         """(P,) nu of each point's Student-t predictive distribution (module docstring), NaN before its start."""
-        return np.where(np.isnan(self.reported).any(axis=(1, 2)), np.nan, tail_dof(np.nan_to_num(self.ratio, nan=0.5)))
+        return np.where(np.isnan(self.reported).any(axis=(1, 2)), np.nan, tail_dof(self.ratio))
 
     def _coasting(self, frames: np.ndarray, detour: np.ndarray) -> np.ndarray:
         """C (n, 2, 2) after (n,) ``frames`` steps on the dynamics summing to the (n, 2) ``detour`` disagreement (px^2).
@@ -275,5 +274,5 @@ class ErrorModel:
         self.coasted[index] = np.where(found, 0, self.coasted[index] + 1)
         self.detour[index] = np.where(found[:, None], 0.0, self.detour[index] + disagreement)
         coast = self._coasting(self.coasted[index], self.detour[index])
-        self._report(index, scaled, self.drift[index] + coast, coast)
+        self._report(index, scaled, self.drift[index], coast)
         self.drift[index[retaken]] += lam * sigma[retaken]  # the new reference's offset, from the next frame on
