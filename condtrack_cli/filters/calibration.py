@@ -72,9 +72,10 @@ The model, per point, reported covariance = max(lambda, 1) Sigma + D + C:
 
 The error is heavy-tailed against the reported covariance (a mixture of right
 and wrong matches summarised by its second moment): on the seven shared real
-sets (``bench --versus-lk`` queries, ``condtrack eval --json``; clf, cnlf, auto)
-the 95 % ellipse held the truth on 0.933-0.985 of the rows and the 99 % one on
-0.962-0.992, but the 50 % one on 0.716-0.903: the core is too wide (bench/results.md).
+sets (``bench --versus-lk``, the Gaussian reading ``cov50_gauss`` ...; clf, cnlf,
+auto) the 95 % Gaussian ellipse held the truth on 0.932-0.997 of the rows and the
+99 % one on 0.953-1.000, but the 50 % one on 0.786-0.978: the core is too wide
+(bench/results.md, "Calibration, Student-t").
 
 Student-t (issue 27). Each row's predictive distribution is a bivariate
 Student-t whose covariance is the reported one above (unchanged: it stays the
