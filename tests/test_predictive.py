@@ -9,7 +9,7 @@ from click.testing import CliRunner
 
 import condtrack_cli as ct
 from condtrack_cli.cli import cli
-from condtrack_cli.filters.calibration import TAIL_CORE, TAIL_EXCESS, tail_dof
+from condtrack_cli.filters.calibration import CORE_MAX, RATIO_MIN, ErrorModel, scale_ratio, tail_dof
 from condtrack_cli.predictive import major_std
 
 from conftest import SAMPLES
@@ -29,13 +29,45 @@ def test_major_std_is_the_root_of_the_larger_eigenvalue():
 
 
 def test_dof_follows_the_error_model_and_stays_above_two(clf_tracks):
-    """nu = 2 + 1 / (TAIL_CORE + TAIL_EXCESS s), s in [0, 1]: 2.25 at s = 0, 2.14 at s = 1; NaN where no state."""
-    assert tail_dof(np.array([0.0, 1.0])) == pytest.approx([2 + 1 / TAIL_CORE, 2 + 1 / (TAIL_CORE + TAIL_EXCESS)])
+    """nu = 2 / (1 - rho), rho the Student-t's scale over its covariance (so that the covariance is the reported one);
+    nu > 2 on every row with a state, NaN elsewhere."""
+    assert tail_dof(np.array([0.5, 0.1])) == pytest.approx([4.0, 2.0 / 0.9])
+    nu = tail_dof(np.array([0.25]))
+    assert nu / (nu - 2) == pytest.approx(4.0)  # covariance = scale nu / (nu - 2)
+    one = np.ones(1)
+    # the filter's own covariance alone: rho is the core's ratio, min(CORE_GAIN lambda_p^CORE_POWER, CORE_MAX)
+    assert scale_ratio(one, 0 * one, 0 * one, 0 * one, np.array([1e6])) == pytest.approx(CORE_MAX)
+    low, high = (scale_ratio(one, 0 * one, 0 * one, 0 * one, np.array([v])) for v in (1e-3, 1e-1))
+    assert 0 < low < high < CORE_MAX  # a point whose innovations are smaller has the tighter core
     dof, has_state = clf_tracks.dof, clf_tracks.result.has_state
     assert np.isnan(dof[~has_state]).all()
-    assert ((dof[has_state] > 2 + 1 / (TAIL_CORE + TAIL_EXCESS) - 1e-12) & (dof[has_state] <= 2 + 1 / TAIL_CORE)).all()
+    assert ((dof[has_state] >= tail_dof(RATIO_MIN) - 1e-12) & (dof[has_state] <= tail_dof(0.999) + 1e-9)).all()
     stk = ct.track(str(SAMPLE), queries=str(SAMPLE / "queries.csv"), method="stk")
     assert np.isinf(stk.dof[stk.result.has_state]).all()  # no error model: Gaussian (and no covariance)
+
+
+def test_a_points_own_innovations_set_its_core_not_its_covariance():
+    """Two groups of points found on one frame with the same prediction, gate and measurement covariance: one
+    matched on its prediction (NIS 0), one with innovations as S says (NIS 2 on average). The reported covariance
+    stays max(lambda, 1) Sigma + D (lambda_p does not enter it); the first group's core is tighter (lambda_p
+    smaller), so its nu is smaller."""
+    rng = np.random.default_rng(0)
+    n = 400
+    model = ErrorModel(n, 9.21)
+    index = np.arange(n)
+    unit = np.repeat(np.eye(2)[None], n, 0)
+    model.start(index, unit)
+    zero = np.zeros((n, 2))
+    z = np.where(np.arange(n)[:, None] < n // 2, 0.0, rng.normal(0.0, np.sqrt(2.0), (n, 2)))  # S = 2 I
+    found = np.ones(n, bool)
+    model.begin_frame()
+    model.update(index, zero, unit, z, unit, found, zero, 0.5 * unit, ~found, zero)
+    tight, loose = slice(0, n // 2), slice(n // 2, n)
+    assert model.consistency[tight].max() < model.consistency[loose].mean()
+    assert np.median(model.dof[tight]) < np.median(model.dof[loose])
+    own = max(model.scale, 1.0) * 0.5 * np.eye(2)
+    np.testing.assert_allclose(model.reported[tight], own + model.drift[tight], rtol=1e-12)
+    assert (model.dof > 2).all()
 
 
 def test_max_std_hides_the_rows_whose_major_std_exceeds_it(clf_tracks, tmp_path):
