@@ -87,13 +87,15 @@ def measure(
     gate_cov: np.ndarray,
     settings: SSDSettings,
     sigma: float,
+    sums: FrameSums | None = None,
 ) -> Measurement:
     """Match P reference patches in one frame inside their validation gates (paper §5.2).
 
     gray: (H, W) float32 frame I_k (grey levels). templates: (P, t, t) float32 reference
     patches I~0 around x0 (:func:`extract_templates`). predicted: (P, 2) predicted
     positions (px). gate_cov: (P, 2, 2) innovation covariance S (px^2), e.g. Sigma_{k|k-1}
-    + R_nominal. sigma: acquisition noise std (grey levels).
+    + R_nominal. sigma: acquisition noise std (grey levels). sums: the frame's
+    :func:`frame_sums` of template-sized windows (computed here when None).
 
     The gate of a point is {nu = z - predicted : nu^T S^-1 nu <= gamma} within the square
     of half-size clip(ceil(sqrt(gamma lambda_max(S))), search_min, search_max) around the
@@ -110,7 +112,8 @@ def measure(
     if not known.any():
         return Measurement(z, R, residual, informative)
     half_sizes = _half_sizes(gate_cov, settings)
-    sums = frame_sums(gray, settings.template)
+    if sums is None:
+        sums = frame_sums(gray, settings.template)
     for points in _search_groups(half_sizes, known, settings):
         part = _measure_group(gray, sums, templates[points], predicted[points], gate_cov[points],
                               half_sizes[points], settings, sigma)
@@ -212,6 +215,9 @@ class SSDMeasure:
     def __init__(self, settings: SSDSettings):
         self.settings = settings
         self.template_side = settings.template  #: side t of the reference patches (px)
+        #: the last frame measured and its :func:`frame_sums`, reused while the same frame is measured again
+        #: (``auto`` measures its CLF and its CNLF points apart)
+        self._sums: tuple[np.ndarray, FrameSums] | None = None
 
     def templates(self, gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """(M, t, t) float32 reference patches around (M, 2) positions of a (H, W) float32 frame."""
@@ -230,8 +236,10 @@ class SSDMeasure:
     def measure(
         self, gray: np.ndarray, templates: np.ndarray, predicted: np.ndarray, gate_cov: np.ndarray, sigma: float
     ) -> Measurement:
-        """:func:`measure` with this stage's settings."""
-        return measure(gray, templates, predicted, gate_cov, self.settings, sigma)
+        """:func:`measure` with this stage's settings; the frame's window sums computed once per frame."""
+        if self._sums is None or self._sums[0] is not gray:
+            self._sums = (gray, frame_sums(gray, self.settings.template))
+        return measure(gray, templates, predicted, gate_cov, self.settings, sigma, self._sums[1])
 
 
 @register("measure", "ssd", SSDSettings, "SSD matching with R_k from the correlation surface")
