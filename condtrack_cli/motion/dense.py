@@ -96,6 +96,10 @@ class DisMotionSettings(StageSettings):
     refinement_iterations: int = Field(
         2, ge=0, le=20, description="DIS: variational refinement iterations per level (0: none)"
     )
+    mean_normalization: Literal["normalised", "raw", "select"] = Field(
+        "normalised",
+        description="DIS: patches matched with their means subtracted (normalised), as they are (raw), or both fields and, per pixel, the one whose warp matches better (select)",
+    )
     global_samples: int = Field(
         4000, ge=100, description="most field vectors in the global fit (a regular sample of the frame)"
     )
@@ -124,16 +128,49 @@ class DenseFlow:
         self._dis.setPatchStride(settings.patch_stride)
         self._dis.setGradientDescentIterations(settings.gradient_iterations)
         self._dis.setVariationalRefinementIterations(settings.refinement_iterations)
+        self._dis.setUseMeanNormalization(settings.mean_normalization != "raw")
+        self._raw = None
+        if settings.mean_normalization == "select":
+            self._raw = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+            self._raw.setPatchSize(settings.patch_size)
+            self._raw.setPatchStride(settings.patch_stride)
+            self._raw.setGradientDescentIterations(settings.gradient_iterations)
+            self._raw.setVariationalRefinementIterations(settings.refinement_iterations)
+            self._raw.setUseMeanNormalization(False)
         self._pair: tuple[Frame, Frame] | None = None
         self._flow: np.ndarray | None = None
 
     def between(self, prev: Frame, cur: Frame) -> np.ndarray:
         if self._pair is None or self._pair[0] is not prev or self._pair[1] is not cur:
-            self._dis.setFinestScale(finest_scale(prev.image.shape, self.settings))
-            flow = self._dis.calc(np.ascontiguousarray(prev.image), np.ascontiguousarray(cur.image), None)
+            level = finest_scale(prev.image.shape, self.settings)
+            self._dis.setFinestScale(level)
+            a, b = np.ascontiguousarray(prev.image), np.ascontiguousarray(cur.image)
+            flow = self._dis.calc(a, b, None)
+            if self._raw is not None:
+                self._raw.setFinestScale(level)
+                raw = self._raw.calc(a, b, None)
+                window = self.settings.local_window
+                better = warp_mismatch(prev.gray, cur.gray, raw, window) < warp_mismatch(prev.gray, cur.gray, flow, window)
+                flow = np.where(better[..., None], raw, flow)
             flow.flags.writeable = False
             self._pair, self._flow = (prev, cur), flow
         return self._flow
+
+
+def warp_mismatch(prev: np.ndarray, cur: np.ndarray, flow: np.ndarray, window: int) -> np.ndarray:
+    """(H, W) float32 zero-mean SSD per pixel, over the ``window`` square, of frame k-1 against frame k warped back by u.
+
+    prev, cur: (H, W) float32 grey levels; flow: (H, W, 2) float32 u(x) px. The difference
+    d(x) = I_{k-1}(x) - I_k(x + u(x)) (bilinear, borders replicated) less its window mean:
+    mean_W(d^2) - mean_W(d)^2, so that a brightness offset between the frames does not count.
+    """
+    height, width = prev.shape
+    xs, ys = np.meshgrid(np.arange(width, dtype=np.float32), np.arange(height, dtype=np.float32))
+    back = cv2.remap(cur, xs + flow[..., 0], ys + flow[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    d = prev - back
+    size = (window, window)
+    mean = cv2.boxFilter(d, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    return cv2.boxFilter(d * d, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT) - mean * mean
 
 
 def finest_scale(shape: tuple[int, int], settings: DisMotionSettings) -> int:
