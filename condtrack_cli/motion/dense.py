@@ -33,6 +33,20 @@ refinement) and reads everything the filters need off it:
   misfit term of Q_k read the same quantities whichever stage made the fit.
   Refining theta by ``robust.py``'s brightness IRLS from the field's fit was
   tried: it moved KITTI seq059's clf from 0.852 to 0.830 <delta_avg.
+- Mean normalisation (``mean_normalization``). OpenCV's DIS matches patches with
+  their means subtracted (invariant to a brightness offset between the frames).
+  On issue 31's card scene (a textured card entering and leaving at 33-38 px a
+  frame over a slowly panning background) that field underestimates the card's
+  step at a quarter of its points (seed 1, frames 18 -> 19: 12 of 46 visible
+  points more than 2 px off, most moved by under 10 px), so the CNLF and the
+  CLF's local dynamics lose the card's own points; without normalisation (``raw``)
+  the field is right there (1 of 46) but off by pixels under a brightness change
+  (KITTI seq005: auto 0.850 -> 0.797 <delta_avg). ``select`` (default) computes
+  both and keeps, per pixel, the one whose warp matches better: the zero-mean SSD
+  over the ``local_window`` square of I_{k-1}(x) - I_k(x + u(x)) (bilinear), so
+  that a brightness offset does not count (``warp_mismatch``). It costs a second
+  DIS field and two box-filtered warps per frame pair (KITTI 1242 x 375: 13 -> 39
+  ms a pair).
 - DIS's finest level: the finest whose pixel count is at most
   ``finest_pixels`` (0 on 320 x 240 frames, 1 on 640 x 480 and on KITTI's
   1242 x 375), unless ``finest_scale`` fixes it: DIS's cost grows with it.
@@ -97,7 +111,7 @@ class DisMotionSettings(StageSettings):
         2, ge=0, le=20, description="DIS: variational refinement iterations per level (0: none)"
     )
     mean_normalization: Literal["normalised", "raw", "select"] = Field(
-        "normalised",
+        "select",
         description="DIS: patches matched with their means subtracted (normalised), as they are (raw), or both fields and, per pixel, the one whose warp matches better (select)",
     )
     global_samples: int = Field(
