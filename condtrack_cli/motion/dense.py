@@ -114,6 +114,10 @@ class DisMotionSettings(StageSettings):
         "select",
         description="DIS: patches matched with their means subtracted (normalised), as they are (raw), or both fields and, per pixel, the one whose warp matches better (select)",
     )
+    border_pad: int = Field(
+        0, ge=0, le=256,
+        description="DIS: px of replicated border added around both frames before the raw field is computed, then cropped (0: none)",
+    )
     global_samples: int = Field(
         4000, ge=100, description="most field vectors in the global fit (a regular sample of the frame)"
     )
@@ -159,13 +163,21 @@ class DenseFlow:
             level = finest_scale(prev.image.shape, self.settings)
             self._dis.setFinestScale(level)
             a, b = np.ascontiguousarray(prev.image), np.ascontiguousarray(cur.image)
-            flow = self._dis.calc(a, b, None)
+            pad = self.settings.border_pad  # room for DIS's coarse levels at the frame's edge, for the raw field
+            inner = (slice(pad, pad + prev.image.shape[0]), slice(pad, pad + prev.image.shape[1]))
+            padded = (a, b) if not pad else tuple(
+                cv2.copyMakeBorder(image, pad, pad, pad, pad, cv2.BORDER_REPLICATE) for image in (a, b))
+            if self.settings.mean_normalization == "raw":
+                flow = self._dis.calc(*padded, None)[inner]
+            else:
+                flow = self._dis.calc(a, b, None)
             if self._raw is not None:
                 self._raw.setFinestScale(level)
-                raw = self._raw.calc(a, b, None)
+                raw = self._raw.calc(*padded, None)[inner]
                 window = self.settings.local_window
                 better = warp_mismatch(prev.gray, cur.gray, raw, window) < warp_mismatch(prev.gray, cur.gray, flow, window)
                 flow = np.where(better[..., None], raw, flow)
+            flow = np.ascontiguousarray(flow)
             flow.flags.writeable = False
             self._pair, self._flow = (prev, cur), flow
         return self._flow
