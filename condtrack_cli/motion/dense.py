@@ -47,16 +47,6 @@ refinement) and reads everything the filters need off it:
   that a brightness offset does not count (``warp_mismatch``). It costs a second
   DIS field and two box-filtered warps per frame pair (KITTI 1242 x 375: 13 -> 39
   ms a pair).
-- Border (``border_pad``, default 32 px): the raw field is computed on both frames
-  with that many px of replicated border, then cropped. A card entering at the
-  frame's edge at 33 px a frame (issue 31, tuning seed 1, frames 4 -> 5, its
-  points 14-43 px inside the frame) is missed by both fields without it (7 of
-  9 points more than 2 px off, by 20-52 px): DIS's coarse levels have no room
-  there. With it none is. Tuning seeds (auto <delta_avg, 0 -> 32 px): card
-  0.958 / 0.848 / 0.991 -> 0.975 / 0.922 / 0.990, jumps 0.979 / 0.992 / 0.997
-  -> 0.981 / 0.994 / 0.992, occlusion 0.986 / 0.950 / 0.992 -> 0.984 / 0.955 /
-  0.992. The normalised field is left unpadded: padded too it cost merton1
-  0.969 -> 0.950.
 - DIS's finest level: the finest whose pixel count is at most
   ``finest_pixels`` (0 on 320 x 240 frames, 1 on 640 x 480 and on KITTI's
   1242 x 375), unless ``finest_scale`` fixes it: DIS's cost grows with it.
@@ -125,7 +115,7 @@ class DisMotionSettings(StageSettings):
         description="DIS: patches matched with their means subtracted (normalised), as they are (raw), or both fields and, per pixel, the one whose warp matches better (select)",
     )
     border_pad: int = Field(
-        32, ge=0, le=256,
+        0, ge=0, le=256,
         description="DIS: px of replicated border added around both frames before the raw field is computed, then cropped (0: none)",
     )
     global_samples: int = Field(
