@@ -47,6 +47,11 @@ refinement) and reads everything the filters need off it:
   that a brightness offset does not count (``warp_mismatch``). It costs a second
   DIS field and two box-filtered warps per frame pair (KITTI 1242 x 375: 13 -> 39
   ms a pair).
+- Border (``border_pad``, 0 by default): the raw field computed on both frames
+  with that many px of replicated border, then cropped, gives DIS's coarse
+  levels room at the frame's edge, where a card entering at 33 px a frame is
+  missed by both fields (issue 31; measured in docs/departures.md, not the
+  default: it breaks the CLF's aperture check of issue 29).
 - DIS's finest level: the finest whose pixel count is at most
   ``finest_pixels`` (0 on 320 x 240 frames, 1 on 640 x 480 and on KITTI's
   1242 x 375), unless ``finest_scale`` fixes it: DIS's cost grows with it.
