@@ -32,3 +32,17 @@ def test_logsumexp_expit_xlogx_and_the_normal_quantile_equal_scipys():
     np.testing.assert_allclose(special.xlogx(d), scipy_special.xlogy(d, d), rtol=1e-15)
     for p in (0.6, 0.75, 0.95, 0.999):
         assert special.normal_quantile(p) == pytest.approx(scipy_special.ndtri(p), rel=1e-14)
+
+
+@pytest.mark.parametrize("dof", [1, 2, 3, 48, 224])
+def test_chi2_quantiles_at_extreme_levels_are_finite_and_match_scipy(dof):
+    """Any level in (0, 1) a config may give (``measure.uniform_alpha``): tails to 1e-9 relative (1e-7 at 1e-9), 1e-5 at
+    1 - 1e-12 (the upper tail is 1 - P, rounded to 1e-16; the closed forms in log space neither overflow nor
+    stall), and a level below what 1 - a sum resolves (1e-300) ends at a finite bracket below the 1e-6 quantile
+    instead of bisecting forever."""
+    # the closed forms are 1 - a sum or erf - a sum: where either is near 1 the difference keeps 1e-16 absolute
+    for p, rel in ((1e-9, 1e-7), (1e-6, 1e-9), (1 - 1e-6, 1e-9), (1 - 1e-12, 1e-5)):
+        want = 2.0 * scipy_special.gammaincinv(dof / 2.0, p)
+        assert special.chi2_quantile(p, dof) == pytest.approx(want, rel=rel), p
+    assert 0.0 <= special.chi2_quantile(1e-300, dof) < special.chi2_quantile(1e-6, dof)  # bounded, if not exact
+    assert np.isfinite(special.chi2_quantile(1 - 1e-16, dof))
