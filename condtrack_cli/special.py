@@ -34,7 +34,10 @@ def xlogx(x: np.ndarray) -> np.ndarray:
 
 
 def normal_quantile(p: float) -> float:
-    """The standard normal distribution's p-quantile."""
+    """The standard normal distribution's p-quantile (-inf at p <= 0, inf at p >= 1, as scipy's ndtri: a level
+    such as 1 - 1e-20 rounds to 1)."""
+    if p <= 0.0 or p >= 1.0:
+        return -math.inf if p <= 0.0 else math.inf
     return NormalDist().inv_cdf(p)
 
 
@@ -68,6 +71,8 @@ def chi2_quantile(p: float, dof: int) -> float:
     """The p-quantile of the chi-square distribution with a positive integer ``dof`` (bisection on
     :func:`chi2_cdf` to 1e-12 relative). The closed forms subtract from 1 (or erf), so the quantile is
     exact to about 1e-16 / min(p, 1 - p) relative (tests/test_special.py); levels beyond that end bounded."""
+    if p <= 0.0 or p >= 1.0:
+        return 0.0 if p <= 0.0 else math.inf
     low, high = 0.0, max(1.0, 2.0 * dof)
     while chi2_cdf(high, dof) < p and high < 1e300:
         high *= 2.0

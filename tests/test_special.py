@@ -46,3 +46,10 @@ def test_chi2_quantiles_at_extreme_levels_are_finite_and_match_scipy(dof):
         assert special.chi2_quantile(p, dof) == pytest.approx(want, rel=rel), p
     assert 0.0 <= special.chi2_quantile(1e-300, dof) < special.chi2_quantile(1e-6, dof)  # bounded, if not exact
     assert np.isfinite(special.chi2_quantile(1 - 1e-16, dof))
+    assert special.chi2_quantile(1 - 1e-20, dof) == np.inf  # the level rounds to 1, as scipy's gammaincinv
+
+
+def test_normal_quantile_of_a_level_that_rounds_to_0_or_1_is_infinite_as_scipys():
+    """``measure.equalise_alpha`` = 1e-20 asks for the quantile at 1 - 1e-20 = 1.0: inf (no threshold), not an error."""
+    for p in (0.0, 1.0 - 1e-20):
+        assert special.normal_quantile(p) == scipy_special.ndtri(p)
