@@ -23,6 +23,7 @@ THREADS_ENV = "CONDTRACK_THREADS"
 #: Variables read by the BLAS / OpenMP libraries numpy and scipy may load, at import time.
 BLAS_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
 
+
 def cores() -> int:
     """Cores this process may run on (its CPU affinity, not the machine's count)."""
     try:

@@ -25,13 +25,12 @@ class SequenceInfo:
     n_frames: int
     fps: float  #: frames per second; 0.0 when the input has no timing (a folder)
 
-    def contains(self, xy: np.ndarray, margin: float = 0.0) -> np.ndarray:
+    def contains(self, xy: np.ndarray) -> np.ndarray:
         """(...) bool: which of the (..., 2) positions ``xy`` lie inside the frame, [-0.5, W-0.5] x [-0.5, H-0.5]
-        (the pixel convention above) widened by ``margin`` px on every side; False for NaN."""
+        (the pixel convention above); False for NaN."""
         x, y = xy[..., 0], xy[..., 1]
-        low = -0.5 - margin
         with np.errstate(invalid="ignore"):
-            return (x >= low) & (x <= self.width - 1 - low) & (y >= low) & (y <= self.height - 1 - low)
+            return (x >= -0.5) & (x <= self.width - 0.5) & (y >= -0.5) & (y <= self.height - 0.5)
 
 
 @dataclass(frozen=True)

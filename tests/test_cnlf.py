@@ -263,7 +263,6 @@ def test_particles_off_the_frame_move_by_the_dominant_motion():
                                [[[35.0, 40.0], [-15.0, 40.0]]])
     assert info.contains(np.array([[-0.5, -0.5], [99.5, 79.5], [99.6, 0.0], [np.nan, 0.0]])).tolist() == \
         [True, True, False, False]
-    assert info.contains(np.array([[-2.0, 3.0]]), margin=2.0).tolist() == [True]
 
 
 def test_rule_5_tells_an_occluder_sweeping_over_a_point_from_a_jump_of_the_camera():

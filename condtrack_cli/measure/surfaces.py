@@ -67,9 +67,10 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
     (TM_CCORR, float32) of T' over each point's frame patch less m = mean T, one call per
     point: at these sizes (t = 11, G <= 39) that loop is 3-6 times faster than one batched
     FFT correlation of every patch (issue 26), and its float32 sums are within about 1e-6
-    of the patches' energies of float64 ones. The window sums of I and I^2 are look-ups in the frame's
-    box sums ``sums`` (:func:`frame_sums` of t x t windows; computed here when None). Exact for every candidate whose centre is inside the frame; the others'
-    values are unspecified (the caller excludes them). ``cost`` 'ssd': the SSD,
+    of the patches' energies of float64 ones. The window sums of I and I^2 are look-ups in
+    the frame's box sums ``sums`` (:func:`frame_sums` of t x t windows; computed here when
+    None). Exact for every candidate whose centre is inside the frame; the others' values
+    are unspecified (the caller excludes them). ``cost`` 'ssd': the SSD,
     sum [T - I]^2 = sum I^2 - 2 sum I T' - 2 m sum I + t^2 m^2 + sum T'^2 (m = mean T).
     'zero_mean': the SSD after giving the frame patch the template's mean,
     sum [T' - I']^2 (T', I' mean-free). 'normalised': after giving it the template's

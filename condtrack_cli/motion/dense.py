@@ -148,39 +148,27 @@ class DenseFlow:
 
     def __init__(self, settings: DisMotionSettings):
         self.settings = settings
-        self._dis = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-        self._dis.setPatchSize(settings.patch_size)
-        self._dis.setPatchStride(settings.patch_stride)
-        self._dis.setGradientDescentIterations(settings.gradient_iterations)
-        self._dis.setVariationalRefinementIterations(settings.refinement_iterations)
-        self._dis.setUseMeanNormalization(settings.mean_normalization != "raw")
-        self._raw = None
-        if settings.mean_normalization == "select":
-            self._raw = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
-            self._raw.setPatchSize(settings.patch_size)
-            self._raw.setPatchStride(settings.patch_stride)
-            self._raw.setGradientDescentIterations(settings.gradient_iterations)
-            self._raw.setVariationalRefinementIterations(settings.refinement_iterations)
-            self._raw.setUseMeanNormalization(False)
+        mode = settings.mean_normalization
+        #: DIS with mean-normalised patches, and without (run on frames padded by ``border_pad``); None when unused
+        self._normalised = _dis(settings, mean_normalised=True) if mode != "raw" else None
+        self._raw = _dis(settings, mean_normalised=False) if mode != "normalised" else None
         self._pair: tuple[Frame, Frame] | None = None
         self._flow: np.ndarray | None = None
 
     def between(self, prev: Frame, cur: Frame) -> np.ndarray:
         if self._pair is None or self._pair[0] is not prev or self._pair[1] is not cur:
             level = finest_scale(prev.image.shape, self.settings)
-            self._dis.setFinestScale(level)
             a, b = np.ascontiguousarray(prev.image), np.ascontiguousarray(cur.image)
-            pad = self.settings.border_pad  # room for DIS's coarse levels at the frame's edge, for the raw field
-            inner = (slice(pad, pad + prev.image.shape[0]), slice(pad, pad + prev.image.shape[1]))
-            padded = (a, b) if not pad else tuple(
-                cv2.copyMakeBorder(image, pad, pad, pad, pad, cv2.BORDER_REPLICATE) for image in (a, b))
-            if self.settings.mean_normalization == "raw":
-                flow = self._dis.calc(*padded, None)[inner]
-            else:
-                flow = self._dis.calc(a, b, None)
+            flow = raw = None
+            if self._normalised is not None:
+                self._normalised.setFinestScale(level)
+                flow = self._normalised.calc(a, b, None)
             if self._raw is not None:
                 self._raw.setFinestScale(level)
-                raw = self._raw.calc(*padded, None)[inner]
+                raw = self._raw_field(a, b)
+            if flow is None:
+                flow = raw
+            elif raw is not None:  # select: per pixel, the field whose warp matches better
                 window = self.settings.local_window
                 better = warp_mismatch(prev.gray, cur.gray, raw, window) < warp_mismatch(prev.gray, cur.gray, flow, window)
                 flow = np.where(better[..., None], raw, flow)
@@ -188,6 +176,26 @@ class DenseFlow:
             flow.flags.writeable = False
             self._pair, self._flow = (prev, cur), flow
         return self._flow
+
+    def _raw_field(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """(H, W, 2) DIS field without mean normalisation between (H, W) uint8 frames, computed on the frames
+        padded by ``border_pad`` px of replicated border (room for DIS's coarse levels at the edge) and cropped."""
+        pad = self.settings.border_pad
+        if not pad:
+            return self._raw.calc(a, b, None)
+        padded = (cv2.copyMakeBorder(image, pad, pad, pad, pad, cv2.BORDER_REPLICATE) for image in (a, b))
+        return self._raw.calc(*padded, None)[pad : pad + a.shape[0], pad : pad + a.shape[1]]
+
+
+def _dis(settings: DisMotionSettings, mean_normalised: bool) -> cv2.DISOpticalFlow:
+    """A DIS instance with the stage's patch and iteration settings, matching mean-normalised patches or not."""
+    dis = cv2.DISOpticalFlow.create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    dis.setPatchSize(settings.patch_size)
+    dis.setPatchStride(settings.patch_stride)
+    dis.setGradientDescentIterations(settings.gradient_iterations)
+    dis.setVariationalRefinementIterations(settings.refinement_iterations)
+    dis.setUseMeanNormalization(mean_normalised)
+    return dis
 
 
 def warp_mismatch(prev: np.ndarray, cur: np.ndarray, flow: np.ndarray, window: int) -> np.ndarray:
