@@ -68,6 +68,7 @@ depend on ``--threads``; a test checks it.
 
 from __future__ import annotations
 
+import functools
 from typing import Literal
 
 import cv2
@@ -233,28 +234,36 @@ def sample_grid(shape: tuple[int, int], samples: int, margin: int) -> np.ndarray
     return grid[:samples]
 
 
+@functools.lru_cache(maxsize=4)
+def sample_design(shape: tuple[int, int], samples: int, margin: int, model: str) -> tuple[np.ndarray, np.ndarray]:
+    """The global fit's sample of a (H, W) frame, the same for every pair: (N, 2) int ``sample_grid`` positions
+    and the (2N, p) design P(x_i) stacked as rows x_0, y_0, x_1, y_1, ... (read-only, cached per shape)."""
+    xy = sample_grid(shape, samples, margin)
+    design = motion_basis(model, xy, *frame_normalisation(shape)).reshape(2 * len(xy), -1)
+    for array in (xy, design):
+        array.flags.writeable = False
+    return xy, design
+
+
 def fit_field(flow: np.ndarray, model: str, cost: str, samples: int, margin: int) -> np.ndarray:
     """(p,) theta (px) of ``model`` fitted to the field by IRLS (module docstring).
 
     flow: (H, W, 2) float32 px. Residuals e_i = u(x_i) - P(x_i) theta on the
     sample's vectors; weights from |e_i| and the scale 1.4826 MAD of |e_i|.
     """
-    height, width = flow.shape[:2]
-    xy = sample_grid((height, width), samples, margin)
-    vectors = flow[xy[:, 1], xy[:, 0]].astype(np.float64)  # (N, 2)
-    basis = motion_basis(model, xy, *frame_normalisation((height, width)))  # (N, 2, p)
-    design = basis.reshape(-1, basis.shape[2])  # rows x0, y0, x1, y1, ...
-    target = vectors.reshape(-1)
-    theta = np.zeros(basis.shape[2])
-    theta[[0, basis.shape[2] // 2]] = np.median(vectors, axis=0)  # the translation terms (model.py's order)
+    xy, design = sample_design(flow.shape[:2], samples, margin, model)
+    target = flow[xy[:, 1], xy[:, 0]].astype(np.float64).reshape(-1)  # u_i as x_0, y_0, x_1, y_1, ...
+    p = design.shape[1]
+    prior = np.eye(p) / THETA_PRIOR_STD**2
+    theta = np.zeros(p)
+    theta[[0, p // 2]] = np.median(target.reshape(-1, 2), axis=0)  # the translation terms (model.py's order)
     for _ in range(GLOBAL_PASSES):
-        norm = np.linalg.norm(vectors - basis @ theta, axis=1)
+        norm = np.linalg.norm((target - design @ theta).reshape(-1, 2), axis=1)
         scale = max(MAD_TO_SIGMA * float(np.median(norm)), MIN_FLOW_SCALE)
-        weights = np.repeat(robust_weights(cost, norm, scale), 2)
-        normal = design.T @ (design * weights[:, None]) + np.eye(len(theta)) * (scale / THETA_PRIOR_STD) ** 2
-        step = np.linalg.solve(normal, design.T @ (weights * target)) - theta
+        weighted = design * np.repeat(robust_weights(cost, norm, scale), 2)[:, None]
+        step = np.linalg.solve(weighted.T @ design + scale**2 * prior, weighted.T @ target) - theta
         theta = theta + step
-        if np.abs(basis @ step).max() < GLOBAL_TOLERANCE:
+        if np.abs(design @ step).max() < GLOBAL_TOLERANCE:
             break
     return theta
 
