@@ -285,18 +285,34 @@ class DisGlobalMotion:
         return fit_of(frame_pyramid(prev, 1), frame_pyramid(cur, 1), theta, self.brightness)
 
 
-def window_spread(flow: np.ndarray, window: int) -> np.ndarray:
+def window_spread(flow: np.ndarray, window: int, scratch: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
     """(H, W, 3) float32 Cov_W(u) as (xx, xy, yy) px^2: the field's covariance over the ``window`` square at each pixel.
 
     flow: (H, W, 2) float32 px. Box means, borders reflected. Rounding may leave
     the diagonal a little below 0 where the field is constant: ``LocalField.noise``
-    clips what it samples.
+    clips what it samples. scratch: ``spread_scratch`` of the frame shape, reused
+    from pair to pair (fresh full-frame arrays cost more in page faults than the
+    arithmetic); None: new ones.
     """
     size = (window, window)
-    u, v = cv2.split(flow)
-    moments = cv2.boxFilter(cv2.merge((u * u, u * v, v * v)), cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
-    mean_u, mean_v = cv2.split(cv2.boxFilter(flow, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT))
-    return cv2.subtract(moments, cv2.merge((mean_u * mean_u, mean_u * mean_v, mean_v * mean_v)))
+    first, second, mean = scratch if scratch is not None else spread_scratch(flow.shape[:2])
+    moments = cv2.boxFilter(_products(flow, first, second), cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    cv2.boxFilter(flow, cv2.CV_32F, size, dst=mean, borderType=cv2.BORDER_REFLECT)
+    return cv2.subtract(moments, _products(mean, first, second), dst=moments)
+
+
+def spread_scratch(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``window_spread``'s float32 working arrays for (H, W) frames: two (H, W, 3), one (H, W, 2)."""
+    height, width = shape
+    return tuple(np.empty((height, width, channels), np.float32) for channels in (3, 3, 2))
+
+
+def _products(vectors: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """(uu, uv, vv) of (H, W, 2) float32 vectors (u, v), computed in the (H, W, 3) float32 ``first`` (returned)
+    with ``second``'s help."""
+    cv2.mixChannels([vectors], [first], [0, 0, 0, 1, 1, 2])
+    cv2.mixChannels([vectors], [second], [0, 0, 1, 1, 1, 2])
+    return cv2.multiply(first, second, dst=first)
 
 
 class DisLocalMotion:
@@ -305,10 +321,13 @@ class DisLocalMotion:
     def __init__(self, settings: DisMotionSettings, flow: DenseFlow):
         self.settings = settings
         self.flow = flow
+        self._scratch: tuple[np.ndarray, ...] | None = None  # window_spread's, for the last frame shape
 
     def field(self, prev: Frame, cur: Frame, fit: MotionFit) -> LocalField:
         """U(x) = u(x) and Q_k(x) = q_floor I + Cov_W(u)(x) from ``prev`` to ``cur``, a node per pixel (``fit`` unused)."""
         flow = self.flow.between(prev, cur)
-        spread = window_spread(flow, self.settings.local_window)
+        if self._scratch is None or self._scratch[0].shape[:2] != flow.shape[:2]:
+            self._scratch = spread_scratch(flow.shape[:2])
+        spread = window_spread(flow, self.settings.local_window, self._scratch)
         spread.flags.writeable = False
         return LocalField(flow, spread, 0.0, 1.0, self.settings.q_floor)
