@@ -21,7 +21,10 @@ refinement) and reads everything the filters need off it:
   motion at x is uncertain. The window is 9 px by default, about one DIS patch
   at full resolution: with the paper's 32 px the spread of a boundary reaches
   points 16 px away from it and the shared sets lose up to 0.03 <delta_avg
-  (``bench/results.md``, issue 26).
+  (``bench/results.md``, issue 26). Computing it on DIS's finest level only
+  (every 2nd pixel on KITTI, 5-node windows, read bilinearly between nodes: 4x
+  fewer pixels) was tried: cnlf seq005 0.853 -> 0.848 <delta_avg, KITTI mean
+  0.857 -> 0.856 (issue 26, the versus-LK bench).
 - Global motion (eq. 1): theta of the parametric model (``model``) fitted to a
   regular sample of at most ``global_samples`` vectors of u by IRLS, cost
   ``robust_cost`` on the vector residual's norm with the scale 1.4826 MAD
@@ -31,6 +34,9 @@ refinement) and reads everything the filters need off it:
   of that theta on the full-resolution frames, exactly as ``robust.py``
   computes them at the end of its own fit (``fit_of``): the routing and the
   misfit term of Q_k read the same quantities whichever stage made the fit.
+  Computing the weights on every 2nd pixel only, each pixel taking its 2 x 2
+  block's (or bilinear between them), was tried: KITTI mean clf 0.8414 ->
+  0.8411 (0.8412 bilinear) <delta_avg, seq011 0.9245 -> 0.9235 (issue 26).
   Refining theta by ``robust.py``'s brightness IRLS from the field's fit was
   tried: it moved KITTI seq059's clf from 0.852 to 0.830 <delta_avg.
 - Mean normalisation (``mean_normalization``). OpenCV's DIS matches patches with
