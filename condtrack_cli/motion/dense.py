@@ -291,7 +291,7 @@ class DisGlobalMotion:
         return fit_of(frame_pyramid(prev, 1), frame_pyramid(cur, 1), theta, self.brightness)
 
 
-def window_spread(flow: np.ndarray, window: int, scratch: tuple[np.ndarray, ...] | None = None) -> np.ndarray:
+def window_spread(flow: np.ndarray, window: int, scratch: SpreadScratch | None = None) -> np.ndarray:
     """(H, W, 3) float32 Cov_W(u) as (xx, xy, yy) px^2: the field's covariance over the ``window`` square at each pixel.
 
     flow: (H, W, 2) float32 px. Box means, borders reflected. Rounding may leave
@@ -301,24 +301,32 @@ def window_spread(flow: np.ndarray, window: int, scratch: tuple[np.ndarray, ...]
     arithmetic); None: new ones.
     """
     size = (window, window)
-    first, second, mean = scratch if scratch is not None else spread_scratch(flow.shape[:2])
-    moments = cv2.boxFilter(_products(flow, first, second), cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    planes, products, mean = scratch if scratch is not None else spread_scratch(flow.shape[:2])
+    moments = cv2.boxFilter(_products(flow, planes, products), cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
     cv2.boxFilter(flow, cv2.CV_32F, size, dst=mean, borderType=cv2.BORDER_REFLECT)
-    return cv2.subtract(moments, _products(mean, first, second), dst=moments)
+    return cv2.subtract(moments, _products(mean, planes, products), dst=moments)
 
 
-def spread_scratch(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``window_spread``'s float32 working arrays for (H, W) frames: two (H, W, 3), one (H, W, 2)."""
+#: ``window_spread``'s float32 working arrays: five (H, W) planes, an (H, W, 3) and an (H, W, 2) array.
+SpreadScratch = tuple[list[np.ndarray], np.ndarray, np.ndarray]
+
+
+def spread_scratch(shape: tuple[int, int]) -> SpreadScratch:
+    """``window_spread``'s working arrays for (H, W) frames."""
     height, width = shape
-    return tuple(np.empty((height, width, channels), np.float32) for channels in (3, 3, 2))
+    planes = [np.empty((height, width), np.float32) for _ in range(5)]
+    return planes, np.empty((height, width, 3), np.float32), np.empty((height, width, 2), np.float32)
 
 
-def _products(vectors: np.ndarray, first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """(uu, uv, vv) of (H, W, 2) float32 vectors (u, v), computed in the (H, W, 3) float32 ``first`` (returned)
-    with ``second``'s help."""
-    cv2.mixChannels([vectors], [first], [0, 0, 0, 1, 1, 2])
-    cv2.mixChannels([vectors], [second], [0, 0, 1, 1, 1, 2])
-    return cv2.multiply(first, second, dst=first)
+def _products(vectors: np.ndarray, planes: list[np.ndarray], products: np.ndarray) -> np.ndarray:
+    """(uu, uv, vv) of (H, W, 2) float32 vectors (u, v), written into the (H, W, 3) ``products`` (returned),
+    the five (H, W) ``planes`` holding u, v and the three products on the way."""
+    u, v, uu, uv, vv = planes
+    cv2.split(vectors, [u, v])
+    cv2.multiply(u, u, dst=uu)
+    cv2.multiply(u, v, dst=uv)
+    cv2.multiply(v, v, dst=vv)
+    return cv2.merge([uu, uv, vv], dst=products)
 
 
 class DisLocalMotion:
@@ -327,12 +335,12 @@ class DisLocalMotion:
     def __init__(self, settings: DisMotionSettings, flow: DenseFlow):
         self.settings = settings
         self.flow = flow
-        self._scratch: tuple[np.ndarray, ...] | None = None  # window_spread's, for the last frame shape
+        self._scratch: SpreadScratch | None = None  # window_spread's, for the last frame shape
 
     def field(self, prev: Frame, cur: Frame, fit: MotionFit) -> LocalField:
         """U(x) = u(x) and Q_k(x) = q_floor I + Cov_W(u)(x) from ``prev`` to ``cur``, a node per pixel (``fit`` unused)."""
         flow = self.flow.between(prev, cur)
-        if self._scratch is None or self._scratch[0].shape[:2] != flow.shape[:2]:
+        if self._scratch is None or self._scratch[2].shape[:2] != flow.shape[:2]:
             self._scratch = spread_scratch(flow.shape[:2])
         spread = window_spread(flow, self.settings.local_window, self._scratch)
         spread.flags.writeable = False
