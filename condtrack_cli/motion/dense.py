@@ -291,6 +291,10 @@ class DisGlobalMotion:
         return fit_of(frame_pyramid(prev, 1), frame_pyramid(cur, 1), theta, self.brightness)
 
 
+#: ``window_spread``'s float32 working arrays: five (H, W) planes, an (H, W, 3) and an (H, W, 2) array.
+SpreadScratch = tuple[list[np.ndarray], np.ndarray, np.ndarray]
+
+
 def window_spread(flow: np.ndarray, window: int, scratch: SpreadScratch | None = None) -> np.ndarray:
     """(H, W, 3) float32 Cov_W(u) as (xx, xy, yy) px^2: the field's covariance over the ``window`` square at each pixel.
 
@@ -305,10 +309,6 @@ def window_spread(flow: np.ndarray, window: int, scratch: SpreadScratch | None =
     moments = cv2.boxFilter(_products(flow, planes, products), cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
     cv2.boxFilter(flow, cv2.CV_32F, size, dst=mean, borderType=cv2.BORDER_REFLECT)
     return cv2.subtract(moments, _products(mean, planes, products), dst=moments)
-
-
-#: ``window_spread``'s float32 working arrays: five (H, W) planes, an (H, W, 3) and an (H, W, 2) array.
-SpreadScratch = tuple[list[np.ndarray], np.ndarray, np.ndarray]
 
 
 def spread_scratch(shape: tuple[int, int]) -> SpreadScratch:
