@@ -12,6 +12,8 @@ from condtrack_cli.motion.dense import (
     DisLocalMotion,
     DisMotionSettings,
     finest_scale,
+    spread_scratch,
+    window_spread,
 )
 from condtrack_cli.motion.model import displacement
 from condtrack_cli.types import Frame
@@ -87,6 +89,23 @@ def test_state_noise_grows_where_the_field_is_inconsistent(crop):
     assert np.all(inside < 0.05) and np.all(background < 0.05)
     assert np.all(outline > 1.0)
     assert np.all(np.linalg.eigvalsh(field.noise(np.array([[200.0, 130.0]]))) >= q_floor - 1e-9)
+
+
+def test_the_spread_with_reused_working_arrays_is_the_fresh_one():
+    """window_spread with ``spread_scratch`` reused over two fields: each result as with new arrays, the first
+    left as it was by the second call, and Cov_W(u) against a direct computation of its definition."""
+    rng = np.random.default_rng(0)
+    fields = [rng.normal(0, 3, (37, 52, 2)).astype(np.float32) for _ in range(2)]
+    scratch = spread_scratch((37, 52))
+    first = window_spread(fields[0], 9, scratch)
+    kept = first.copy()
+    second = window_spread(fields[1], 9, scratch)
+    np.testing.assert_array_equal(first, kept)
+    np.testing.assert_array_equal(first, window_spread(fields[0], 9))
+    np.testing.assert_array_equal(second, window_spread(fields[1], 9))
+    window = fields[1][10:19, 20:29].reshape(-1, 2).astype(np.float64)  # the square around pixel (24, 14)
+    cov = np.cov(window.T, bias=True)
+    np.testing.assert_allclose(second[14, 24], [cov[0, 0], cov[0, 1], cov[1, 1]], rtol=1e-4, atol=1e-4)
 
 
 def test_the_field_is_computed_once_per_frame_pair(crop):

@@ -21,7 +21,10 @@ refinement) and reads everything the filters need off it:
   motion at x is uncertain. The window is 9 px by default, about one DIS patch
   at full resolution: with the paper's 32 px the spread of a boundary reaches
   points 16 px away from it and the shared sets lose up to 0.03 <delta_avg
-  (``bench/results.md``, issue 26).
+  (``bench/results.md``, issue 26). Computing it on DIS's finest level only
+  (every 2nd pixel on KITTI, 5-node windows, read bilinearly between nodes: 4x
+  fewer pixels) was tried: cnlf seq005 0.853 -> 0.848 <delta_avg, KITTI mean
+  0.857 -> 0.856 (issue 26, the versus-LK bench).
 - Global motion (eq. 1): theta of the parametric model (``model``) fitted to a
   regular sample of at most ``global_samples`` vectors of u by IRLS, cost
   ``robust_cost`` on the vector residual's norm with the scale 1.4826 MAD
@@ -31,6 +34,9 @@ refinement) and reads everything the filters need off it:
   of that theta on the full-resolution frames, exactly as ``robust.py``
   computes them at the end of its own fit (``fit_of``): the routing and the
   misfit term of Q_k read the same quantities whichever stage made the fit.
+  Computing the weights on every 2nd pixel only, each pixel taking its 2 x 2
+  block's (or bilinear between them), was tried: KITTI mean clf 0.8414 ->
+  0.8411 (0.8412 bilinear) <delta_avg, seq011 0.9245 -> 0.9235 (issue 26).
   Refining theta by ``robust.py``'s brightness IRLS from the field's fit was
   tried: it moved KITTI seq059's clf from 0.852 to 0.830 <delta_avg.
 - Mean normalisation (``mean_normalization``). OpenCV's DIS matches patches with
@@ -68,6 +74,7 @@ depend on ``--threads``; a test checks it.
 
 from __future__ import annotations
 
+import functools
 from typing import Literal
 
 import cv2
@@ -233,28 +240,36 @@ def sample_grid(shape: tuple[int, int], samples: int, margin: int) -> np.ndarray
     return grid[:samples]
 
 
+@functools.lru_cache(maxsize=4)
+def sample_design(shape: tuple[int, int], samples: int, margin: int, model: str) -> tuple[np.ndarray, np.ndarray]:
+    """The global fit's sample of a (H, W) frame, the same for every pair: (N, 2) int ``sample_grid`` positions
+    and the (2N, p) design P(x_i) stacked as rows x_0, y_0, x_1, y_1, ... (read-only, cached per shape)."""
+    xy = sample_grid(shape, samples, margin)
+    design = motion_basis(model, xy, *frame_normalisation(shape)).reshape(2 * len(xy), -1)
+    for array in (xy, design):
+        array.flags.writeable = False
+    return xy, design
+
+
 def fit_field(flow: np.ndarray, model: str, cost: str, samples: int, margin: int) -> np.ndarray:
     """(p,) theta (px) of ``model`` fitted to the field by IRLS (module docstring).
 
     flow: (H, W, 2) float32 px. Residuals e_i = u(x_i) - P(x_i) theta on the
     sample's vectors; weights from |e_i| and the scale 1.4826 MAD of |e_i|.
     """
-    height, width = flow.shape[:2]
-    xy = sample_grid((height, width), samples, margin)
-    vectors = flow[xy[:, 1], xy[:, 0]].astype(np.float64)  # (N, 2)
-    basis = motion_basis(model, xy, *frame_normalisation((height, width)))  # (N, 2, p)
-    design = basis.reshape(-1, basis.shape[2])  # rows x0, y0, x1, y1, ...
-    target = vectors.reshape(-1)
-    theta = np.zeros(basis.shape[2])
-    theta[[0, basis.shape[2] // 2]] = np.median(vectors, axis=0)  # the translation terms (model.py's order)
+    xy, design = sample_design(flow.shape[:2], samples, margin, model)
+    target = flow[xy[:, 1], xy[:, 0]].astype(np.float64).reshape(-1)  # u_i as x_0, y_0, x_1, y_1, ...
+    p = design.shape[1]
+    prior = np.eye(p) / THETA_PRIOR_STD**2
+    theta = np.zeros(p)
+    theta[[0, p // 2]] = np.median(target.reshape(-1, 2), axis=0)  # the translation terms (model.py's order)
     for _ in range(GLOBAL_PASSES):
-        norm = np.linalg.norm(vectors - basis @ theta, axis=1)
+        norm = np.linalg.norm((target - design @ theta).reshape(-1, 2), axis=1)
         scale = max(MAD_TO_SIGMA * float(np.median(norm)), MIN_FLOW_SCALE)
-        weights = np.repeat(robust_weights(cost, norm, scale), 2)
-        normal = design.T @ (design * weights[:, None]) + np.eye(len(theta)) * (scale / THETA_PRIOR_STD) ** 2
-        step = np.linalg.solve(normal, design.T @ (weights * target)) - theta
+        weighted = design * np.repeat(robust_weights(cost, norm, scale), 2)[:, None]
+        step = np.linalg.solve(weighted.T @ design + scale**2 * prior, weighted.T @ target) - theta
         theta = theta + step
-        if np.abs(basis @ step).max() < GLOBAL_TOLERANCE:
+        if np.abs(design @ step).max() < GLOBAL_TOLERANCE:
             break
     return theta
 
@@ -276,18 +291,42 @@ class DisGlobalMotion:
         return fit_of(frame_pyramid(prev, 1), frame_pyramid(cur, 1), theta, self.brightness)
 
 
-def window_spread(flow: np.ndarray, window: int) -> np.ndarray:
+#: ``window_spread``'s float32 working arrays: five (H, W) planes, an (H, W, 3) and an (H, W, 2) array.
+SpreadScratch = tuple[list[np.ndarray], np.ndarray, np.ndarray]
+
+
+def window_spread(flow: np.ndarray, window: int, scratch: SpreadScratch | None = None) -> np.ndarray:
     """(H, W, 3) float32 Cov_W(u) as (xx, xy, yy) px^2: the field's covariance over the ``window`` square at each pixel.
 
     flow: (H, W, 2) float32 px. Box means, borders reflected. Rounding may leave
     the diagonal a little below 0 where the field is constant: ``LocalField.noise``
-    clips what it samples.
+    clips what it samples. scratch: ``spread_scratch`` of the frame shape, reused
+    from pair to pair (fresh full-frame arrays cost more in page faults than the
+    arithmetic); None: new ones.
     """
     size = (window, window)
-    u, v = cv2.split(flow)
-    moments = cv2.boxFilter(cv2.merge((u * u, u * v, v * v)), cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
-    mean_u, mean_v = cv2.split(cv2.boxFilter(flow, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT))
-    return cv2.subtract(moments, cv2.merge((mean_u * mean_u, mean_u * mean_v, mean_v * mean_v)))
+    planes, products, mean = scratch if scratch is not None else spread_scratch(flow.shape[:2])
+    moments = cv2.boxFilter(_products(flow, planes, products), cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
+    cv2.boxFilter(flow, cv2.CV_32F, size, dst=mean, borderType=cv2.BORDER_REFLECT)
+    return cv2.subtract(moments, _products(mean, planes, products), dst=moments)
+
+
+def spread_scratch(shape: tuple[int, int]) -> SpreadScratch:
+    """``window_spread``'s working arrays for (H, W) frames."""
+    height, width = shape
+    planes = [np.empty((height, width), np.float32) for _ in range(5)]
+    return planes, np.empty((height, width, 3), np.float32), np.empty((height, width, 2), np.float32)
+
+
+def _products(vectors: np.ndarray, planes: list[np.ndarray], products: np.ndarray) -> np.ndarray:
+    """(uu, uv, vv) of (H, W, 2) float32 vectors (u, v), written into the (H, W, 3) ``products`` (returned),
+    the five (H, W) ``planes`` holding u, v and the three products on the way."""
+    u, v, uu, uv, vv = planes
+    cv2.split(vectors, [u, v])
+    cv2.multiply(u, u, dst=uu)
+    cv2.multiply(u, v, dst=uv)
+    cv2.multiply(v, v, dst=vv)
+    return cv2.merge([uu, uv, vv], dst=products)
 
 
 class DisLocalMotion:
@@ -296,10 +335,13 @@ class DisLocalMotion:
     def __init__(self, settings: DisMotionSettings, flow: DenseFlow):
         self.settings = settings
         self.flow = flow
+        self._scratch: SpreadScratch | None = None  # window_spread's, for the last frame shape
 
     def field(self, prev: Frame, cur: Frame, fit: MotionFit) -> LocalField:
         """U(x) = u(x) and Q_k(x) = q_floor I + Cov_W(u)(x) from ``prev`` to ``cur``, a node per pixel (``fit`` unused)."""
         flow = self.flow.between(prev, cur)
-        spread = window_spread(flow, self.settings.local_window)
+        if self._scratch is None or self._scratch[2].shape[:2] != flow.shape[:2]:
+            self._scratch = spread_scratch(flow.shape[:2])
+        spread = window_spread(flow, self.settings.local_window, self._scratch)
         spread.flags.writeable = False
         return LocalField(flow, spread, 0.0, 1.0, self.settings.q_floor)

@@ -94,12 +94,14 @@ def warp_maps(model: str, theta: np.ndarray, origin: np.ndarray, length: float,
     """x + U(x) on the whole pixel grid of a (H, W) frame: two (H, W) float32 maps (px) for ``cv2.remap``.
 
     Terms in u only and in v only are summed on a row and a column, then
-    broadcast once; only the quadratic model's uv terms cost full-frame passes.
+    broadcast once; only the quadratic model's uv terms cost full-frame passes,
+    each a float64 product rounded straight into a float32 buffer and added in place.
     """
     height, width = shape
     u = (np.arange(width) - origin[0]) / length
     v = (np.arange(height) - origin[1]) / length
     maps = []
+    term = None  # (H, W) float32 buffer of one uv term
     for component in (0, 1):
         along_row = np.arange(width, dtype=np.float64) if component == 0 else np.zeros(width)
         along_column = np.arange(height, dtype=np.float64) if component == 1 else np.zeros(height)
@@ -113,6 +115,13 @@ def warp_maps(model: str, theta: np.ndarray, origin: np.ndarray, length: float,
             elif a == 0:
                 along_column += theta_j * v**b
             else:
-                cross.append(np.float32(theta_j) * np.outer(v**b, u**a).astype(np.float32))
-        maps.append(sum(cross, along_row.astype(np.float32)[None, :] + along_column.astype(np.float32)[:, None]))
+                cross.append((theta_j, a, b))
+        grid = np.add.outer(along_column.astype(np.float32), along_row.astype(np.float32))
+        for theta_j, a, b in cross:
+            if term is None:
+                term = np.empty((height, width), np.float32)
+            np.multiply((v**b)[:, None], (u**a)[None, :], out=term, casting="same_kind")
+            term *= np.float32(theta_j)
+            grid += term
+        maps.append(grid)
     return maps[0], maps[1]

@@ -119,12 +119,16 @@ TUNING = {"tukey": 4.6851, "geman_mcclure": 3.7874, "cauchy": 2.3849}
 
 def robust_weights(cost: str, residual: np.ndarray, scale: float) -> np.ndarray:
     """IRLS weights rho'(r)/r, normalised to 1 at r = 0, in [0, 1]; same shape and dtype as ``residual``."""
-    t2 = np.square(residual / (TUNING[cost] * scale))
+    t2 = residual / (TUNING[cost] * scale)  # a new array: the steps below work in place on it
+    np.square(t2, out=t2)
     if cost == "tukey":
-        return np.square(np.clip(1 - t2, 0, None))
+        np.subtract(1, t2, out=t2)
+        np.maximum(t2, 0, out=t2)
+        return np.square(t2, out=t2)
+    np.add(t2, 1, out=t2)
     if cost == "geman_mcclure":
-        return 1 / np.square(1 + t2)
-    return 1 / (1 + t2)
+        np.square(t2, out=t2)
+    return np.divide(1, t2, out=t2)
 
 
 def robust_scale(residual: np.ndarray, floor: float) -> float:
