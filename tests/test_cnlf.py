@@ -62,8 +62,7 @@ def test_particle_filter_agrees_with_kalman_on_a_linear_gaussian_problem():
         x_kf, s_kf = kalman.update(x_kf, s_kf, z, R[None], valid)
         mu = particles + u
         particles, log_w = propagate(rng, log_w, mu, np.broadcast_to(Q, mu.shape + (2,)), z, R[None], valid)
-        picks, log_w = resample(rng, log_w, settings)
-        particles = np.take_along_axis(particles, picks[..., None], axis=1)
+        resample(rng, particles, log_w, settings)
     w = np.exp(log_w[0])[:, None]
     mean = (w * particles[0]).sum(axis=0)
     cov = np.einsum("n,ni,nj->ij", w[:, 0], particles[0] - mean, particles[0] - mean)
@@ -71,14 +70,15 @@ def test_particle_filter_agrees_with_kalman_on_a_linear_gaussian_problem():
     np.testing.assert_allclose(cov, s_kf[0], rtol=0.06, atol=0.01)
 
 
-def test_resample_returns_new_weights_and_leaves_its_input_alone():
+def test_resample_replaces_the_degenerate_rows_only():
     count = 8
     log_w = normalise(np.log(np.array([[1.0] + [1e-6] * (count - 1), [1.0] * count])))  # row 0 degenerate, row 1 uniform
-    before = log_w.copy()
-    picks, after = resample(np.random.default_rng(0), log_w, CNLFSettings(particles=count))
-    assert np.array_equal(log_w, before)
-    np.testing.assert_allclose(after, -np.log(count))  # row 0 reset to uniform, row 1 already uniform
-    assert (picks[0] == 0).all() and (picks[1] == np.arange(count)).all()
+    particles = np.arange(2 * count * 2, dtype=float).reshape(2, count, 2)
+    before = particles.copy()
+    rows, picks = resample(np.random.default_rng(0), particles, log_w, CNLFSettings(particles=count))
+    np.testing.assert_allclose(log_w, -np.log(count))  # row 0 reset to uniform, row 1 already uniform
+    assert rows.tolist() == [0] and (picks == 0).all()
+    assert (particles[0] == before[0, 0]).all() and np.array_equal(particles[1], before[1])
 
 
 @pytest.fixture(scope="module")
