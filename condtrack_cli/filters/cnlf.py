@@ -49,7 +49,7 @@ from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.calibration import ErrorModel
 from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, matvec2, sample_gauss2
 from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMatcher
-from condtrack_cli.filters.resampling import RESAMPLERS, normalise
+from condtrack_cli.filters.resampling import RESAMPLERS, normalise, sum_over_particles
 from condtrack_cli.filters.smoother import TransitionLog, error_excess, particle_smoother, weighted_moments
 from condtrack_cli.frame_reports import FrameReports
 from condtrack_cli.measure.interface import Measurer
@@ -108,7 +108,7 @@ def mixture_moments(log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray) -> tuple[n
     log_w: (n, N) normalised log-weights; mu: (n, N, 2); Q: (n, N, 2, 2).
     """
     w = np.exp(log_w)[..., None]
-    mean = (w * mu).sum(axis=1)
+    mean = sum_over_particles(w * mu, axis=1)
     d = mu - mean[:, None]
     spread = d[..., :, None] * d[..., None, :]  # (n, N, 2, 2) d d^T
     spread += Q
@@ -131,10 +131,11 @@ def propagate(
     q_inv, r_inv = inverse2(Q), inverse2(R)
     C = inverse2(q_inv + r_inv)  # eq. (11): C_k = (Q^-1 + R^-1)^-1
     m = matvec2(C, matvec2(q_inv, mu) + matvec2(r_inv, z))  # eq. (11): m = C (Q^-1 mu + R^-1 z)
-    use = valid[:, None, None]
-    particles = sample_gauss2(rng, np.where(use, m, mu), np.where(use[..., None], C, Q))
-    with np.errstate(invalid="ignore"):
-        log_like = log_gauss2(np.where(use, z, mu), mu, R + Q)  # eq. (4): p(z | x_{k-1}) = N(z; mu, R + Q)
+    unmeasured = ~valid
+    m[unmeasured], C[unmeasured] = mu[unmeasured], Q[unmeasured]
+    particles = sample_gauss2(rng, m, C)
+    with np.errstate(invalid="ignore"):  # the rows without a measurement (z NaN or outside the gate) are not used
+        log_like = log_gauss2(z, mu, R + Q)  # eq. (4): p(z | x_{k-1}) = N(z; mu, R + Q)
     return particles, normalise(np.where(valid[:, None], log_w + log_like, log_w))
 
 
@@ -357,7 +358,7 @@ class CNLFTracker(Tracker):
                 paths[moved] = np.take_along_axis(paths[moved], lineage[inside][moved, :, None], axis=1)
                 mean = np.full((len(self.log_w), 2), np.nan)
                 with np.errstate(invalid="ignore"):
-                    mean[inside] = (weights[inside] * paths).sum(axis=1)
+                    mean[inside] = sum_over_particles(weights[inside] * paths, axis=1)
                 means.append(mean)
             points, picks = self.ancestor_history[j]
             lineage[points] = np.take_along_axis(picks, lineage[points], axis=1)
