@@ -113,7 +113,7 @@ def mixture_moments(log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray) -> tuple[n
     spread = d[..., :, None] * d[..., None, :]  # (n, N, 2, 2) d d^T
     spread += Q
     spread *= w[..., None]
-    return mean, spread.sum(axis=1)
+    return mean, sum_over_particles(spread, axis=1)
 
 
 def propagate(
