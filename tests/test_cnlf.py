@@ -1,4 +1,4 @@
-"""CNLF: resampling, agreement with the Kalman filter on a linear-Gaussian problem, the ring sample, routing."""
+"""CNLF: its particle algebra, resampling, agreement with the Kalman filter on a linear-Gaussian problem, the ring sample, routing."""
 
 from __future__ import annotations
 
@@ -11,7 +11,8 @@ from condtrack_cli.evaluate.score import score_tracks
 from condtrack_cli.filters import kalman
 from condtrack_cli.filters.auto import extrapolation_spread, lost_on_local, swept_by_occluder
 from condtrack_cli.filters.cnlf import CNLFSettings, particle_means, propagate, resample
-from condtrack_cli.filters.resampling import RESAMPLERS, normalise
+from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, matvec2
+from condtrack_cli.filters.resampling import RESAMPLERS, normalise, sum_over_particles
 from condtrack_cli.motion.model import MotionFit
 from condtrack_cli.registry import method_code
 from condtrack_cli.types import SequenceInfo
@@ -62,8 +63,7 @@ def test_particle_filter_agrees_with_kalman_on_a_linear_gaussian_problem():
         x_kf, s_kf = kalman.update(x_kf, s_kf, z, R[None], valid)
         mu = particles + u
         particles, log_w = propagate(rng, log_w, mu, np.broadcast_to(Q, mu.shape + (2,)), z, R[None], valid)
-        picks, log_w = resample(rng, log_w, settings)
-        particles = np.take_along_axis(particles, picks[..., None], axis=1)
+        resample(rng, particles, log_w, settings)
     w = np.exp(log_w[0])[:, None]
     mean = (w * particles[0]).sum(axis=0)
     cov = np.einsum("n,ni,nj->ij", w[:, 0], particles[0] - mean, particles[0] - mean)
@@ -71,14 +71,31 @@ def test_particle_filter_agrees_with_kalman_on_a_linear_gaussian_problem():
     np.testing.assert_allclose(cov, s_kf[0], rtol=0.06, atol=0.01)
 
 
-def test_resample_returns_new_weights_and_leaves_its_input_alone():
+def test_resample_replaces_the_degenerate_rows_only():
     count = 8
     log_w = normalise(np.log(np.array([[1.0] + [1e-6] * (count - 1), [1.0] * count])))  # row 0 degenerate, row 1 uniform
-    before = log_w.copy()
-    picks, after = resample(np.random.default_rng(0), log_w, CNLFSettings(particles=count))
-    assert np.array_equal(log_w, before)
-    np.testing.assert_allclose(after, -np.log(count))  # row 0 reset to uniform, row 1 already uniform
-    assert (picks[0] == 0).all() and (picks[1] == np.arange(count)).all()
+    particles = np.arange(2 * count * 2, dtype=float).reshape(2, count, 2)
+    before = particles.copy()
+    rows, picks = resample(np.random.default_rng(0), particles, log_w, CNLFSettings(particles=count))
+    np.testing.assert_allclose(log_w, -np.log(count))  # row 0 reset to uniform, row 1 already uniform
+    assert rows.tolist() == [0] and (picks == 0).all()
+    assert (particles[0] == before[0, 0]).all() and np.array_equal(particles[1], before[1])
+
+
+def test_particle_algebra_equals_numpy_generic_forms_bit_for_bit():
+    """The written-out 2x2 algebra and the particle-first sums give the very numbers of the np.einsum and
+    ndarray.sum forms they stand for (the CNLF's output does not depend on which is used)."""
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(7, 100, 2, 2))
+    cov = a @ np.swapaxes(a, -1, -2) + 0.1 * np.eye(2)
+    x, mean = 30 * rng.normal(size=(7, 100, 2)), 30 * rng.normal(size=(7, 100, 2))
+    d = x - mean
+    quad = np.einsum("...i,...ij,...j->...", d, inverse2(cov), d)
+    det = cov[..., 0, 0] * cov[..., 1, 1] - cov[..., 0, 1] ** 2
+    assert np.array_equal(log_gauss2(x, mean, cov), -0.5 * quad - 0.5 * np.log(det) - np.log(2 * np.pi))
+    assert np.array_equal(matvec2(cov, x), np.einsum("pnij,pnj->pni", cov, x))
+    for values, axis in ((x, 1), (cov, 1), (rng.normal(size=(5, 4, 100, 2)), 2)):
+        assert np.array_equal(sum_over_particles(values, axis), values.sum(axis=axis))
 
 
 @pytest.fixture(scope="module")

@@ -47,9 +47,9 @@ from pydantic import Field
 from condtrack_cli.filters.base import Tracker
 from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.calibration import ErrorModel
-from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, sample_gauss2
+from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, matvec2, sample_gauss2
 from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMatcher
-from condtrack_cli.filters.resampling import RESAMPLERS, normalise
+from condtrack_cli.filters.resampling import RESAMPLERS, normalise, sum_over_particles
 from condtrack_cli.filters.smoother import TransitionLog, error_excess, particle_smoother, weighted_moments
 from condtrack_cli.frame_reports import FrameReports
 from condtrack_cli.measure.interface import Measurer
@@ -88,12 +88,18 @@ def particle_means(info: SequenceInfo, x: np.ndarray, field, fit) -> np.ndarray:
     particles off the frame and those that both motions take off it.
 
     Off the frame the local field has no support (the content there has left the frame) and is biased;
-    the dominant motion, fitted on the whole frame, holds there (docs/departures.md).
+    the dominant motion, fitted on the whole frame, holds there (docs/departures.md). The dominant motion
+    is evaluated only at the particles where it may be used (off the frame, or taken off it by the local one).
     """
-    local = x + field.displacement(x)
-    dominant = x + displacement(fit, x.reshape(-1, 2)).reshape(x.shape)
-    off = ~info.contains(x) | ~(info.contains(local) | info.contains(dominant))
-    return np.where(off[..., None], dominant, local)
+    means = x + field.displacement(x)
+    inside = info.contains(x)
+    candidates = ~inside | ~info.contains(means)  # the particles that may be off, whatever the dominant motion does
+    if candidates.any():
+        dominant = x[candidates] + displacement(fit, x[candidates])
+        off = candidates.copy()
+        off[candidates] = ~inside[candidates] | ~info.contains(dominant)
+        means[off] = dominant[off[candidates]]
+    return means
 
 
 def mixture_moments(log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -102,9 +108,12 @@ def mixture_moments(log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray) -> tuple[n
     log_w: (n, N) normalised log-weights; mu: (n, N, 2); Q: (n, N, 2, 2).
     """
     w = np.exp(log_w)[..., None]
-    mean = (w * mu).sum(axis=1)
+    mean = sum_over_particles(w * mu, axis=1)
     d = mu - mean[:, None]
-    return mean, (w[..., None] * (Q + np.einsum("pni,pnj->pnij", d, d))).sum(axis=1)
+    spread = d[..., :, None] * d[..., None, :]  # (n, N, 2, 2) d d^T
+    spread += Q
+    spread *= w[..., None]
+    return mean, sum_over_particles(spread, axis=1)
 
 
 def propagate(
@@ -118,33 +127,32 @@ def propagate(
     dynamics N(mu, Q) and the weights stay. Returns particles (n, N, 2) and
     normalised log-weights (n, N).
     """
-    R = np.broadcast_to(R[:, None], Q.shape)
-    zz = np.broadcast_to(z[:, None], mu.shape)
+    R, z = R[:, None], z[:, None]  # (n, 1, 2, 2), (n, 1, 2): the same for all particles of a point
     q_inv, r_inv = inverse2(Q), inverse2(R)
     C = inverse2(q_inv + r_inv)  # eq. (11): C_k = (Q^-1 + R^-1)^-1
-    m = np.einsum("pnij,pnj->pni", C, np.einsum("pnij,pnj->pni", q_inv, mu) + np.einsum("pnij,pnj->pni", r_inv, zz))
-    use = valid[:, None, None]
-    particles = sample_gauss2(rng, np.where(use, m, mu), np.where(use[..., None], C, Q))
-    with np.errstate(invalid="ignore"):
-        log_like = log_gauss2(np.where(use, zz, mu), mu, R + Q)  # eq. (4): p(z | x_{k-1}) = N(z; mu, R + Q)
+    m = matvec2(C, matvec2(q_inv, mu) + matvec2(r_inv, z))  # eq. (11): m = C (Q^-1 mu + R^-1 z)
+    unmeasured = ~valid
+    m[unmeasured], C[unmeasured] = mu[unmeasured], Q[unmeasured]
+    particles = sample_gauss2(rng, m, C)
+    with np.errstate(invalid="ignore"):  # the rows without a measurement (z NaN or outside the gate) are not used
+        log_like = log_gauss2(z, mu, R + Q)  # eq. (4): p(z | x_{k-1}) = N(z; mu, R + Q)
     return particles, normalise(np.where(valid[:, None], log_w + log_like, log_w))
 
 
-def resample(rng: np.random.Generator, log_w: np.ndarray, settings: CNLFSettings) -> np.ndarray:
-    """Ancestor indices (n, N) and the log-weights (n, N) after resampling, ``log_w`` left unchanged.
-
-    Rows whose effective sample size is below ess_fraction N are resampled and
-    their weights reset to uniform; the other rows keep identity ancestors and their weights.
+def resample(rng: np.random.Generator, particles: np.ndarray, log_w: np.ndarray,
+             settings: CNLFSettings) -> tuple[np.ndarray, np.ndarray]:
+    """Resample in place the rows of particles (n, N, 2) and normalised log-weights (n, N) whose effective sample
+    size 1 / sum w^2 is below ess_fraction N: their particles are drawn among their own (``settings.resampling``)
+    and their weights reset to uniform; the other rows are left as they are (each particle its own parent).
+    Returns those rows (m,) and their ancestor indices (m, N).
     """
-    n, count = log_w.shape
-    picks = np.broadcast_to(np.arange(count), (n, count)).copy()
-    log_w = log_w.copy()
+    count = log_w.shape[1]
     weights = np.exp(log_w)
     degenerate = np.flatnonzero(1.0 / (weights**2).sum(axis=1) < settings.ess_fraction * count)
-    if degenerate.size:
-        picks[degenerate] = RESAMPLERS[settings.resampling](rng, weights[degenerate])
-        log_w[degenerate] = -np.log(count)
-    return picks, log_w
+    picks = RESAMPLERS[settings.resampling](rng, weights[degenerate]) if degenerate.size else np.zeros((0, count), int)
+    particles[degenerate] = np.take_along_axis(particles[degenerate], picks[..., None], axis=1)
+    log_w[degenerate] = -np.log(count)
+    return degenerate, picks
 
 
 class CNLFTracker(Tracker):
@@ -168,7 +176,9 @@ class CNLFTracker(Tracker):
         self.lineage_start = np.full(p, -1)  #: pass frame at which each point's particles were (re)drawn
         self.particle_history: list[np.ndarray] = []  #: per kept frame, (P, N, 2) particles, NaN off the CNLF
         self.store_particles = store_particles
-        self.ancestor_history: list[np.ndarray] = []  #: per kept frame, (P, N) index of each particle's parent
+        #: per kept frame, the points resampled into it (m,) and the index of each of their particles' parent (m, N);
+        #: every other particle is its own parent
+        self.ancestor_history: list[tuple[np.ndarray, np.ndarray]] = []
         self.first_kept = 0  #: pass frame of particle_history[0]; the frames before have a fixed path estimate
         self.fixed_paths: list[np.ndarray] = []  #: per frame before first_kept, (P, 2) path estimate, NaN off a lineage
         #: frame k - path_lag is fixed and dropped after frame k, unless all are wanted (stored particles, the smoother)
@@ -188,7 +198,7 @@ class CNLFTracker(Tracker):
     def begin_frame(self) -> None:
         """Before a frame: no particle has been resampled yet (each is its own parent)."""
         self.errors.begin_frame()
-        self.ancestors = np.broadcast_to(np.arange(self.settings.particles), self.log_w.shape).copy()
+        self.ancestors = (np.zeros(0, int), np.zeros((0, self.settings.particles), int))
 
     def end_frame(self) -> None:
         """After a frame: keep its particles and their parents for the path estimate; fix the frame that falls out."""
@@ -208,7 +218,7 @@ class CNLFTracker(Tracker):
         self.log_w[index] = -np.log(n)
         self.lineage_start[index] = frame_index
         self.layer_step[index] = self.measured_step[index] = np.nan  # no layer known until measured twice running
-        self._report(index)
+        self._report(index, self.particles[index], self.log_w[index])
 
     def take_over(self, index: np.ndarray, frame_index: int, xy: np.ndarray, cov: np.ndarray,
                   visible: np.ndarray) -> None:
@@ -234,9 +244,10 @@ class CNLFTracker(Tracker):
         """The error model's Student-t degrees of freedom (``calibration.py``)."""
         return self.errors.dof
 
-    def _report(self, index: np.ndarray) -> None:
-        """xy and cov of points ``index``: the weighted mean and covariance of the current particles."""
-        self.xy[index], self.cov[index] = weighted_moments(self.particles[index], self.log_w[index])
+    def _report(self, index: np.ndarray, particles: np.ndarray, log_w: np.ndarray) -> None:
+        """xy and cov of points ``index``: the weighted mean and covariance of their current particles (n, N, 2)
+        with normalised log-weights (n, N)."""
+        self.xy[index], self.cov[index] = weighted_moments(particles, log_w)
 
     def _advance(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion) -> None:
         x_prev = self.xy[index].copy()
@@ -254,11 +265,10 @@ class CNLFTracker(Tracker):
         gate_mean, gate_cov = mixture_moments(self.log_w[index], mu, Q)
         measured = self.reference.measure_in_gate(index, frame, gate_mean, gate_cov)
         particles, log_w = propagate(self.rng, self.log_w[index], mu, Q, measured.z, measured.R_used, measured.valid)
-        picks, log_w = resample(self.rng, log_w, self.settings)
-        self.particles[index] = np.take_along_axis(particles, picks[..., None], axis=1)
-        self.ancestors[index] = picks
-        self.log_w[index] = log_w
-        self._report(index)
+        resampled, picks = resample(self.rng, particles, log_w, self.settings)
+        self.ancestors = (index[resampled], picks)
+        self.particles[index], self.log_w[index] = particles, log_w
+        self._report(index, particles, log_w)
         self.visible[index] = measured.valid
         self.z[index], self.R[index] = measured.z, measured.R
         retaken = self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
@@ -338,17 +348,21 @@ class CNLFTracker(Tracker):
         """
         weights = np.exp(self.log_w)[..., None]  # (P, N, 1)
         lineage = np.broadcast_to(np.arange(self.settings.particles), self.log_w.shape).copy()
-        rows = np.arange(len(self.log_w))[:, None]
+        resampled = np.zeros(len(self.log_w), bool)  # the points whose lineage is not the identity
         means = []
         for j in range(len(self.particle_history) - 1, -1, -1):
             if j < stop:
-                paths = self.particle_history[j][rows, lineage]  # (P, N, 2): each current particle's ancestor at j
                 inside = (self.lineage_start <= self.first_kept + j) & (self.lineage_start >= 0)
+                paths = self.particle_history[j][inside]  # (n, N, 2): each current particle's ancestor at j
+                moved = np.flatnonzero(resampled[inside])
+                paths[moved] = np.take_along_axis(paths[moved], lineage[inside][moved, :, None], axis=1)
                 mean = np.full((len(self.log_w), 2), np.nan)
                 with np.errstate(invalid="ignore"):
-                    mean[inside] = (weights[inside] * paths[inside]).sum(axis=1)
+                    mean[inside] = sum_over_particles(weights[inside] * paths, axis=1)
                 means.append(mean)
-            lineage = np.take_along_axis(self.ancestor_history[j], lineage, axis=1)
+            points, picks = self.ancestor_history[j]
+            lineage[points] = np.take_along_axis(picks, lineage[points], axis=1)
+            resampled[points] = True
         return means[::-1]
 
     def path_means(self, xy: np.ndarray) -> np.ndarray:

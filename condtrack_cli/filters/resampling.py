@@ -16,6 +16,15 @@ def normalise(log_w: np.ndarray) -> np.ndarray:
     return log_w - logsumexp(log_w, axis=1, keepdims=True)
 
 
+def sum_over_particles(values: np.ndarray, axis: int) -> np.ndarray:
+    """``values.sum(axis)`` over the particle axis ``axis``, equal to it bit for bit, faster on (..., N, 2) arrays.
+
+    numpy adds along a middle axis in index order, one short inner loop per trailing element; a copy
+    with the particle axis first gets the same sums, in the same order, by adding whole rows in turn.
+    """
+    return np.ascontiguousarray(np.moveaxis(values, axis, 0)).sum(axis=0)
+
+
 def _row_searchsorted(edges: np.ndarray, values: np.ndarray) -> np.ndarray:
     """Per row, the index of the first edge > value: (n, K) increasing edges in [0, 1], (n, M) values in [0, 1)."""
     n, k = edges.shape

@@ -39,6 +39,7 @@ from __future__ import annotations
 import numpy as np
 
 from condtrack_cli.filters.gauss2 import inverse2
+from condtrack_cli.filters.resampling import sum_over_particles
 from condtrack_cli.special import logsumexp
 
 
@@ -145,6 +146,6 @@ def transition_log_density(x_next: np.ndarray, mu: np.ndarray, Q: np.ndarray) ->
 def weighted_moments(particles: np.ndarray, log_w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mean (..., 2) and covariance (..., 2, 2) of particles (..., N, 2) with normalised log-weights (..., N)."""
     w = np.exp(log_w)
-    mean = (w[..., None] * particles).sum(axis=-2)
+    mean = sum_over_particles(w[..., None] * particles, axis=-2)
     d = particles - mean[..., None, :]
     return mean, np.einsum("...n,...ni,...nj->...ij", w, d, d)

@@ -49,6 +49,7 @@ class LocalField:
         xx, xy_, yy = np.moveaxis(self._at(self.cov, xy), -1, 0)
         xx, yy = np.maximum(xx, 0.0), np.maximum(yy, 0.0)  # float32 rounding of a variance near 0
         bound = np.sqrt(xx * yy)  # keeps float32 rounding from making a nearly singular cov indefinite
-        xy_ = np.clip(xy_, -bound, bound)
-        cov = np.stack((np.stack((xx, xy_), -1), np.stack((xy_, yy), -1)), -2)
-        return cov + self.q_floor * np.eye(2)
+        cov = np.empty(xx.shape + (2, 2))
+        cov[..., 0, 0], cov[..., 1, 1] = xx + self.q_floor, yy + self.q_floor
+        cov[..., 0, 1] = cov[..., 1, 0] = np.clip(xy_, -bound, bound)
+        return cov
