@@ -96,10 +96,9 @@ GLOBAL_PASSES = 10
 GLOBAL_TOLERANCE = 1e-3
 
 #: ``select``: least difference (px) between the two fields where the raw one may replace the normalised one.
-SELECT_MIN_DIFFERENCE = 1.0
+SELECT_MIN_DIFFERENCE = 2.0
 
-#: ``select``: the raw field's DIS patch stride (px of its finest level, on the half-resolution frames); it has no
-#: variational refinement.
+#: ``select``: the raw field's DIS patch stride (px of its finest level, on the half-resolution frames).
 SELECT_RAW_STRIDE = 3
 
 
@@ -162,7 +161,6 @@ class DenseFlow:
         self._raw = _dis(settings, False) if mode != "normalised" else None
         if mode == "select":
             self._raw.setPatchStride(SELECT_RAW_STRIDE)
-            self._raw.setVariationalRefinementIterations(0)
         self._pair: tuple[Frame, Frame] | None = None
         self._flow: np.ndarray | None = None
 
@@ -189,8 +187,8 @@ class DenseFlow:
 
         The raw field, whose job is only to catch the large steps that the normalised one misses, is computed at
         the same level of the frames averaged over 2 x 2 px (INTER_AREA), i.e. one level coarser, with patches
-        ``SELECT_RAW_STRIDE`` px apart and no variational refinement. The choice is made on that half-resolution
-        grid too, then the raw field is upsampled (bilinear, doubled) where it is taken.
+        ``SELECT_RAW_STRIDE`` px apart. The choice is made on that half-resolution grid too, then the raw field is
+        upsampled (bilinear, doubled) where it is taken.
         """
         self._normalised.setFinestScale(level)
         flow = self._normalised.calc(a, b, None)
