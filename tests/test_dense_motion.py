@@ -161,8 +161,8 @@ def test_select_keeps_the_normalised_field_under_a_brightness_change(crop):
 def test_border_pad_gives_dis_room_for_a_card_entering_at_the_frame_edge():
     """Issue 31's card scene (seed 1, a tuning seed), frames 4 -> 5: the card enters from the left edge at 33
     px/frame and its points lie 14-43 px inside the frame. Without padding DIS's coarse levels have no room there
-    (measured: 3 of 9 card points more than 2 px off, by 7-28 px; 7 of 9 with the raw field at full resolution);
-    with 32 px of replicated border under the `select` field's raw field (the one border_pad pads) none is."""
+    (measured: 7 of 9 card points more than 2 px off, by 4-39 px); with 32 px of replicated border under the
+    `select` field's raw field (the one border_pad pads) none is."""
     from condtrack_cli.frames.synthetic import make_scene
 
     scene = make_scene("card", seed=1)
@@ -177,5 +177,5 @@ def test_border_pad_gives_dis_room_for_a_card_entering_at_the_frame_edge():
         assert flow.shape == scene.frames[a].shape + (2,)
         pixels = np.rint(start).astype(int)
         miss[pad] = np.linalg.norm(flow[pixels[:, 1], pixels[:, 0]] - truth, axis=1) > 2
-    assert miss[0].mean() >= 0.3
+    assert miss[0].mean() >= 0.5
     assert miss[32].mean() <= 0.1

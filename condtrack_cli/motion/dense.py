@@ -194,7 +194,9 @@ class DenseFlow:
         flow = self._normalised.calc(a, b, None)
         height, width = a.shape
         half = (width // 2, height // 2)
-        a_half, b_half = (cv2.resize(image, half, interpolation=cv2.INTER_AREA) for image in (a, b))
+        # an odd last row or column is left out: INTER_AREA is a plain 2 x 2 mean (and 30 times faster) at exactly half
+        a_half, b_half = (cv2.resize(image[: 2 * half[1], : 2 * half[0]], half, interpolation=cv2.INTER_AREA)
+                          for image in (a, b))
         self._raw.setFinestScale(level)
         raw_half = self._raw_field(a_half, b_half, self.settings.border_pad // 2)
         normalised_half = cv2.resize(flow, half, interpolation=cv2.INTER_NEAREST) * np.float32(0.5)
