@@ -95,10 +95,8 @@ MIN_FLOW_SCALE = 0.05
 GLOBAL_PASSES = 10
 GLOBAL_TOLERANCE = 1e-3
 
-#: ``select``: least difference (px) between the two fields where the raw one may replace the normalised one, and
-#: the share of the normalised field's warp mismatch that the raw one's must stay under.
+#: ``select``: least difference (px) between the two fields where the raw one may replace the normalised one.
 SELECT_MIN_DIFFERENCE = 2.0
-SELECT_MISMATCH_RATIO = 0.5
 
 #: ``select``: the raw field's DIS patch stride (px of its finest level, on the half-resolution frames).
 SELECT_RAW_STRIDE = 3
@@ -246,14 +244,13 @@ def warp_mismatch(prev: np.ndarray, cur: np.ndarray, flow: np.ndarray, window: i
 def raw_matches_better(prev: np.ndarray, cur: np.ndarray, normalised: np.ndarray, raw: np.ndarray,
                        window: int) -> np.ndarray:
     """(H, W) uint8 mask, 255 where ``select`` takes the raw field: it differs from the normalised one by more than
-    ``SELECT_MIN_DIFFERENCE`` px of the full-resolution frames and its warp mismatch (``warp_mismatch``) is under
-    ``SELECT_MISMATCH_RATIO`` times the normalised field's.
+    ``SELECT_MIN_DIFFERENCE`` px of the full-resolution frames and its warp matches better (``warp_mismatch``).
 
     prev, cur: (H, W) float32 half-resolution frames; normalised, raw: (H, W, 2) float32 fields on them (px of
     that grid); window: side of the mismatch's square (px of that grid).
     """
-    matches_better = cv2.compare(warp_mismatch(prev, cur, raw, window),
-                                 SELECT_MISMATCH_RATIO * warp_mismatch(prev, cur, normalised, window), cv2.CMP_LT)
+    matches_better = cv2.compare(warp_mismatch(prev, cur, raw, window), warp_mismatch(prev, cur, normalised, window),
+                                 cv2.CMP_LT)
     differs = cv2.compare(cv2.magnitude(*cv2.split(raw - normalised)), SELECT_MIN_DIFFERENCE / 2, cv2.CMP_GT)
     return cv2.bitwise_and(matches_better, differs)
 
