@@ -42,13 +42,20 @@ refinement) and reads everything the filters need off it:
   CLF's local dynamics lose the card's own points; without normalisation (``raw``)
   the field is right there (1 of 46) but off by pixels under a brightness change
   (KITTI seq005: auto 0.850 -> 0.797 <delta_avg). ``select`` computes both and
-  keeps, per pixel, the one whose warp matches better: the zero-mean SSD over the
-  ``local_window`` square of I_{k-1}(x) - I_k(x + u(x)) (bilinear), so that a
-  brightness offset does not count (``warp_mismatch``). It costs a second DIS
-  field and two box-filtered warps per frame pair (KITTI 1242 x 375: 13 -> 39 ms
-  a pair; a whole ``track -m auto`` 30-45 % longer), so it is an option for
-  clips with fast independently moving objects, not the default
-  (``normalised``): issue 26's speed comes first (docs/departures.md).
+  keeps the raw field where it differs from the normalised one by more than
+  ``SELECT_MIN_DIFFERENCE`` px and its warp matches better: the zero-mean SSD
+  over the ``local_window`` square of I_{k-1}(x) - I_k(x + u(x)) (bilinear), so
+  that a brightness offset does not count (``warp_mismatch``,
+  ``raw_matches_better``). Its job being only to catch large steps, the raw field
+  is computed on the frames averaged over 2 x 2 px (one DIS level coarser,
+  patches ``SELECT_RAW_STRIDE`` px apart), and the choice is made on that grid,
+  the window halved (``DenseFlow._selected_field``): 9-13 ms more a KITTI
+  1242 x 375 pair (normalised 18-21 ms), a whole ``track -m auto`` on KITTI
+  seq005 10-13 % longer in CPU time (a full-resolution raw field and choice:
+  30-45 %). It is an option for clips with fast
+  independently moving objects, not the default (``normalised``): issue 26's
+  speed comes first, and on issue 31's reporting seeds it passes 35 of 40
+  checks, not the 37 of the full-resolution version (docs/departures.md).
 - Border (``border_pad``, 0 by default): the raw field computed on both frames
   with that many px of replicated border, then cropped, gives DIS's coarse
   levels room at the frame's edge, where a card entering at 33 px a frame is
