@@ -180,8 +180,8 @@ def test_select_keeps_the_normalised_field_under_a_brightness_change(crop):
 def test_border_pad_gives_dis_room_for_a_card_entering_at_the_frame_edge():
     """Issue 31's card scene (seed 1, a tuning seed), frames 4 -> 5: the card enters from the left edge at 33
     px/frame and its points lie 14-43 px inside the frame. Without padding DIS's coarse levels have no room there
-    (measured: 7 of 9 card points more than 2 px off, by 20-52 px); with 32 px of replicated border under the
-    `select` field (the one border_pad pads) none is."""
+    (measured: 7 of 9 card points more than 2 px off, by 4-39 px); with 32 px of replicated border under the
+    `select` field's raw field (the one border_pad pads) none is."""
     from condtrack_cli.frames.synthetic import make_scene
 
     scene = make_scene("card", seed=1)

@@ -48,13 +48,20 @@ refinement) and reads everything the filters need off it:
   CLF's local dynamics lose the card's own points; without normalisation (``raw``)
   the field is right there (1 of 46) but off by pixels under a brightness change
   (KITTI seq005: auto 0.850 -> 0.797 <delta_avg). ``select`` computes both and
-  keeps, per pixel, the one whose warp matches better: the zero-mean SSD over the
-  ``local_window`` square of I_{k-1}(x) - I_k(x + u(x)) (bilinear), so that a
-  brightness offset does not count (``warp_mismatch``). It costs a second DIS
-  field and two box-filtered warps per frame pair (KITTI 1242 x 375: 13 -> 39 ms
-  a pair; a whole ``track -m auto`` 30-45 % longer), so it is an option for
-  clips with fast independently moving objects, not the default
-  (``normalised``): issue 26's speed comes first (docs/departures.md).
+  keeps the raw field where it differs from the normalised one by more than
+  ``SELECT_MIN_DIFFERENCE`` px and its warp matches better: the zero-mean SSD
+  over the ``local_window`` square of I_{k-1}(x) - I_k(x + u(x)) (bilinear), so
+  that a brightness offset does not count (``warp_mismatch``,
+  ``raw_matches_better``). Its job being only to catch large steps, the raw field
+  is computed on the frames averaged over 2 x 2 px (one DIS level coarser,
+  patches ``SELECT_RAW_STRIDE`` px apart), and the choice is made on that grid,
+  the window halved (``DenseFlow._selected_field``): 9-13 ms more a KITTI
+  1242 x 375 pair (normalised 18-21 ms), a whole ``track -m auto`` on KITTI
+  seq005 10-13 % longer in CPU time (a full-resolution raw field and choice:
+  30-45 %). It is an option for clips with fast
+  independently moving objects, not the default (``normalised``): issue 26's
+  speed comes first, and on issue 31's reporting seeds it passes 35 of 40
+  checks, not the 37 of the full-resolution version (docs/departures.md).
 - Border (``border_pad``, 0 by default): the raw field computed on both frames
   with that many px of replicated border, then cropped, gives DIS's coarse
   levels room at the frame's edge, where a card entering at 33 px a frame is
@@ -101,6 +108,12 @@ MIN_FLOW_SCALE = 0.05
 #: Most IRLS passes of the global fit, and the change of theta (px) that ends them sooner.
 GLOBAL_PASSES = 10
 GLOBAL_TOLERANCE = 1e-3
+
+#: ``select``: least difference (px) between the two fields where the raw one may replace the normalised one.
+SELECT_MIN_DIFFERENCE = 2.0
+
+#: ``select``: the raw field's DIS patch stride (px of its finest level, on the half-resolution frames).
+SELECT_RAW_STRIDE = 3
 
 
 class DisMotionSettings(StageSettings):
@@ -156,9 +169,12 @@ class DenseFlow:
     def __init__(self, settings: DisMotionSettings):
         self.settings = settings
         mode = settings.mean_normalization
-        #: DIS with mean-normalised patches, and without (run on frames padded by ``border_pad``); None when unused
-        self._normalised = _dis(settings, mean_normalised=True) if mode != "raw" else None
-        self._raw = _dis(settings, mean_normalised=False) if mode != "normalised" else None
+        #: DIS with mean-normalised patches, and without (run on frames padded by ``border_pad``; for ``select``
+        #: on half-resolution frames: ``_selected_field``); None when unused
+        self._normalised = _dis(settings, True) if mode != "raw" else None
+        self._raw = _dis(settings, False) if mode != "normalised" else None
+        if mode == "select":
+            self._raw.setPatchStride(SELECT_RAW_STRIDE)
         self._pair: tuple[Frame, Frame] | None = None
         self._flow: np.ndarray | None = None
 
@@ -166,28 +182,46 @@ class DenseFlow:
         if self._pair is None or self._pair[0] is not prev or self._pair[1] is not cur:
             level = finest_scale(prev.image.shape, self.settings)
             a, b = np.ascontiguousarray(prev.image), np.ascontiguousarray(cur.image)
-            flow = raw = None
-            if self._normalised is not None:
+            if self._raw is None:
                 self._normalised.setFinestScale(level)
                 flow = self._normalised.calc(a, b, None)
-            if self._raw is not None:
+            elif self._normalised is None:
                 self._raw.setFinestScale(level)
-                raw = self._raw_field(a, b)
-            if flow is None:
-                flow = raw
-            elif raw is not None:  # select: per pixel, the field whose warp matches better
-                window = self.settings.local_window
-                better = warp_mismatch(prev.gray, cur.gray, raw, window) < warp_mismatch(prev.gray, cur.gray, flow, window)
-                flow = np.where(better[..., None], raw, flow)
+                flow = self._raw_field(a, b, self.settings.border_pad)
+            else:
+                flow = self._selected_field(a, b, level)
             flow = np.ascontiguousarray(flow)
             flow.flags.writeable = False
             self._pair, self._flow = (prev, cur), flow
         return self._flow
 
-    def _raw_field(self, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    def _selected_field(self, a: np.ndarray, b: np.ndarray, level: int) -> np.ndarray:
+        """(H, W, 2) ``select``'s field between (H, W) uint8 frames: the normalised field at DIS level ``level``,
+        replaced by the raw one where ``raw_matches_better``.
+
+        The raw field, whose job is only to catch the large steps that the normalised one misses, is computed at
+        the same level of the frames averaged over 2 x 2 px (INTER_AREA), i.e. one level coarser, with patches
+        ``SELECT_RAW_STRIDE`` px apart. The choice is made on that half-resolution grid too, then the raw field is
+        upsampled (bilinear, doubled) where it is taken.
+        """
+        self._normalised.setFinestScale(level)
+        flow = self._normalised.calc(a, b, None)
+        height, width = a.shape
+        half = (width // 2, height // 2)
+        # an odd last row or column is left out: INTER_AREA is a plain 2 x 2 mean (and 30 times faster) at exactly half
+        a_half, b_half = (cv2.resize(image[: 2 * half[1], : 2 * half[0]], half, interpolation=cv2.INTER_AREA)
+                          for image in (a, b))
+        self._raw.setFinestScale(level)
+        raw_half = self._raw_field(a_half, b_half, self.settings.border_pad // 2)
+        normalised_half = cv2.resize(flow, half, interpolation=cv2.INTER_NEAREST) * np.float32(0.5)
+        take_raw = raw_matches_better(a_half.astype(np.float32), b_half.astype(np.float32), normalised_half, raw_half,
+                                      max(3, self.settings.local_window // 2 | 1))
+        raw = cv2.resize(raw_half * np.float32(2), (width, height), interpolation=cv2.INTER_LINEAR)
+        return cv2.copyTo(raw, cv2.resize(take_raw, (width, height), interpolation=cv2.INTER_NEAREST), flow)
+
+    def _raw_field(self, a: np.ndarray, b: np.ndarray, pad: int) -> np.ndarray:
         """(H, W, 2) DIS field without mean normalisation between (H, W) uint8 frames, computed on the frames
-        padded by ``border_pad`` px of replicated border (room for DIS's coarse levels at the edge) and cropped."""
-        pad = self.settings.border_pad
+        padded by ``pad`` px of replicated border (room for DIS's coarse levels at the edge) and cropped."""
         if not pad:
             return self._raw.calc(a, b, None)
         padded = (cv2.copyMakeBorder(image, pad, pad, pad, pad, cv2.BORDER_REPLICATE) for image in (a, b))
@@ -219,6 +253,20 @@ def warp_mismatch(prev: np.ndarray, cur: np.ndarray, flow: np.ndarray, window: i
     size = (window, window)
     mean = cv2.boxFilter(d, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT)
     return cv2.boxFilter(d * d, cv2.CV_32F, size, borderType=cv2.BORDER_REFLECT) - mean * mean
+
+
+def raw_matches_better(prev: np.ndarray, cur: np.ndarray, normalised: np.ndarray, raw: np.ndarray,
+                       window: int) -> np.ndarray:
+    """(H, W) uint8 mask, 255 where ``select`` takes the raw field: it differs from the normalised one by more than
+    ``SELECT_MIN_DIFFERENCE`` px of the full-resolution frames and its warp matches better (``warp_mismatch``).
+
+    prev, cur: (H, W) float32 half-resolution frames; normalised, raw: (H, W, 2) float32 fields on them (px of
+    that grid); window: side of the mismatch's square (px of that grid).
+    """
+    matches_better = cv2.compare(warp_mismatch(prev, cur, raw, window), warp_mismatch(prev, cur, normalised, window),
+                                 cv2.CMP_LT)
+    differs = cv2.compare(cv2.magnitude(*cv2.split(raw - normalised)), SELECT_MIN_DIFFERENCE / 2, cv2.CMP_GT)
+    return cv2.bitwise_and(matches_better, differs)
 
 
 def finest_scale(shape: tuple[int, int], settings: DisMotionSettings) -> int:
