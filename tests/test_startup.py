@@ -69,13 +69,3 @@ def test_the_lazy_help_lists_what_the_commands_say():
 def test_an_unknown_command_is_refused():
     result = CliRunner().invoke(cli, ["trak"])
     assert result.exit_code == 2 and "No such command 'trak'" in result.output
-
-
-def test_track_keeps_freed_memory_in_the_heap_where_glibc_is():
-    """``allocator.keep_freed_memory``: glibc's mallopt accepts the three thresholds (1 = set); elsewhere False."""
-    import platform
-
-    from condtrack_cli.allocator import keep_freed_memory
-
-    expected = platform.system() == "Linux" and platform.libc_ver()[0] == "glibc"
-    assert keep_freed_memory() is expected

@@ -9,7 +9,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-from condtrack_cli.allocator import keep_freed_memory
 from condtrack_cli.batch.manifest import ClipRecord, job_record
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
@@ -60,7 +59,6 @@ class _StopCheck:
 def run_job(job: BatchJob) -> ClipRecord:
     """Track one input into its output (in whichever process runs it); a bad input gives a ``failed`` record."""
     use_threads(job.threads)
-    keep_freed_memory()
     started = time.perf_counter()
     stop_check = _StopCheck(job.stop_event) if job.stop_event else None
     try:

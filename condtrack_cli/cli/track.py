@@ -9,7 +9,6 @@ from pathlib import Path
 import click
 
 from condtrack_cli import MAX_SEED, registry
-from condtrack_cli.allocator import keep_freed_memory
 from condtrack_cli.cli.batch_options import batch_options, refuse_batch_options
 from condtrack_cli.cli.options import overlay_options, overlay_style
 from condtrack_cli.config import Config, config_keys, load_config
@@ -96,7 +95,6 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         if warning:
             warn(warning)
         use_threads(threads)
-        keep_freed_memory()
         refuse_overwriting_inputs({"-o": output_path, "--overlay": overlay_path},
                                   {"INPUT": inputs[0], "-p": queries_path, "-c": config_path})
         with contextlib.nullcontext() if quiet else Progress() as progress:
