@@ -11,13 +11,19 @@ from __future__ import annotations
 import numpy as np
 
 
-def inverse2(m: np.ndarray) -> np.ndarray:
-    """Inverses of (..., 2, 2) symmetric positive-definite matrices, in closed form."""
+def _inverse_terms(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(xx, xy, yy) terms of the inverses of (..., 2, 2) symmetric matrices, and their determinants (...)."""
     a, b, d = m[..., 0, 0], m[..., 0, 1], m[..., 1, 1]
     det = a * d - b * b
+    return d / det, -b / det, a / det, det
+
+
+def inverse2(m: np.ndarray) -> np.ndarray:
+    """Inverses of (..., 2, 2) symmetric positive-definite matrices, in closed form."""
+    xx, xy, yy, _ = _inverse_terms(m)
     out = np.empty_like(m)
-    out[..., 0, 0], out[..., 1, 1] = d / det, a / det
-    out[..., 0, 1] = out[..., 1, 0] = -b / det
+    out[..., 0, 0], out[..., 1, 1] = xx, yy
+    out[..., 0, 1] = out[..., 1, 0] = xy
     return out
 
 
@@ -35,10 +41,8 @@ def log_gauss2(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """log N(x; mean, cov) for (..., 2) points and (..., 2, 2) symmetric covariances."""
     d = x - mean
     d0, d1 = d[..., 0], d[..., 1]
-    a, b, c = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
-    det = a * c - b * b
-    off = -b / det  # the inverse's off-diagonal term
-    quad = (d0 * (c / det)) * d0 + (d0 * off) * d1 + (d1 * off) * d0 + (d1 * (a / det)) * d1  # d^T cov^-1 d
+    xx, xy, yy, det = _inverse_terms(cov)
+    quad = (d0 * xx) * d0 + (d0 * xy) * d1 + (d1 * xy) * d0 + (d1 * yy) * d1  # d^T cov^-1 d
     return -0.5 * quad - 0.5 * np.log(det) - np.log(2 * np.pi)
 
 

@@ -78,8 +78,8 @@ def compile_package() -> None:
 
     Where ``PYTHONDONTWRITEBYTECODE`` is set (as on the machines this benchmark was
     first run on), every ``condtrack track`` would otherwise compile the package's
-    modules again (about 0.04 s of each process), while the OpenCV script's
-    imports (numpy, OpenCV) read their installed bytecode.
+    modules again at each start (bench/results.md, "Speed"), while the OpenCV
+    script's imports (numpy, OpenCV) read their installed bytecode.
     """
     import compileall
 
