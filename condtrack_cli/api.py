@@ -168,7 +168,8 @@ def track_sequence(
     block, floor, policy = trackability_settings(config.stage("detect").settings)
     if queries is not None and policy != "keep":  # the trackability test (issue 29): drop and error act before tracking
         queries, _ = screen_queries(queries, query_scores(source, queries, block), floor, policy)
-    backward_frames = int(queries.frame.max()) + 1 if queries is not None and queries.frame.max() > 0 else 0
+    backward = config.output.backward and queries is not None and queries.frame.max() > 0
+    backward_frames = int(queries.frame.max()) + 1 if backward else 0
     on_frame = None
     if progress is not None:
         total, done = info.n_frames + backward_frames, itertools.count(1)
@@ -190,7 +191,7 @@ def track(
     source: str | Path, queries: str | Path | np.ndarray | None = None, method: str | None = None,
     config: str | Path | Mapping[str, Any] | None = None, seed: int = 0,
     progress: bool | Callable[[int, int], None] = False, untrackable: str | None = None,
-    max_std: float | None = None,
+    max_std: float | None = None, forward_only: bool = False,
 ) -> Tracks:
     """Track points through ``source``, a folder of frames or a video file.
 
@@ -203,6 +204,8 @@ def track(
     each frame read (``total``: the forward pass's frames plus the backward pass's).
     max_std: rows whose standard deviation along their covariance's major axis exceeds this many
     pixels are reported not visible (``output.max_std``, ``condtrack track --max-std``).
+    forward_only: track each point from its query frame on only, with no rows before it
+    (``output.backward: false``, ``condtrack track --forward-only``).
     untrackable: what to do with queries whose Shi-Tomasi score is at or below ``detect.min_eigenvalue``
     (overrides ``detect.untrackable``, as ``condtrack track --untrackable``): "keep" (tracked, with a
     warning; the default), "drop" (left out of the result, the others keep their point ids) or "error"
@@ -223,8 +226,11 @@ def track(
         raise InvalidArgumentType(f"untrackable: expected one of {', '.join(POLICIES)}, got {type(untrackable).__name__}")
     if untrackable is not None and untrackable not in POLICIES:
         raise InvalidArgument(f"untrackable: {plain(untrackable)} is not one of {', '.join(POLICIES)}")
+    if not isinstance(forward_only, bool):
+        raise InvalidArgumentType(f"forward_only: expected True or False, got {type(forward_only).__name__}")
     overrides = ([f"detect.untrackable={untrackable}"] if untrackable is not None else []) + (
-        [f"output.max_std={plain(max_std)}"] if max_std is not None else [])
+        [f"output.max_std={plain(max_std)}"] if max_std is not None else []) + (
+        ["output.backward=false"] if forward_only else [])
     with Progress() if progress is True else contextlib.nullcontext(progress or None) as callback:
         tracks, _ = track_sequence(source, load_config(config, overrides, method), queries, seed, callback)
     return tracks

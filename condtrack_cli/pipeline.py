@@ -88,12 +88,13 @@ def run(
     """Track ``queries`` (detected on frame 0 when None) through ``source`` in both directions.
 
     ``source`` iterates (H, W) uint8 frames and has ``reversed_from(k)`` (the
-    frame readers). The backward pass uses the seed ``seed + 1``.
+    frame readers). The backward pass uses the seed ``seed + 1``; with ``output.backward``
+    false there is none, and a point has no state before its query frame.
     """
     forward = run_pass(source, info, config, queries, seed, on_frame)
     queries = forward.queries
     last = int(queries.frame.max())
-    if last == 0:
+    if last == 0 or not config.output.backward:
         return forward
     mirrored = Queries(queries.point_id, last - queries.frame, queries.xy)
     with temporary_folder() as folder:

@@ -82,6 +82,17 @@ def test_queries_are_tracked_forward_and_backward_from_their_frame(shifted_folde
     assert len(lines) == 1 + 2 * 6 and lines[1].startswith("3,0,") and lines[7].startswith("7,0,")
 
 
+def test_forward_only_writes_rows_from_each_query_frame_on(shifted_folder, tmp_path):
+    folder, shifts = shifted_folder
+    queries = tmp_path / "q.csv"
+    queries.write_text(f"point_id,frame,x,y\n7,2,{100 + shifts[2, 0]},{80 + shifts[2, 1]}\n3,0,200,150\n")
+    out = tmp_path / "t.csv"
+    assert run_cli("track", str(folder), "-p", str(queries), "-m", "clf", "--forward-only", "-o", str(out), "-q").returncode == 0
+    frames = {point: [int(line.split(",")[1]) for line in out.read_text().splitlines()[1:] if line.startswith(f"{point},")]
+              for point in (3, 7)}
+    assert frames == {3: [0, 1, 2, 3, 4, 5], 7: [2, 3, 4, 5]}  # point 7 has no row before its query frame 2
+
+
 @pytest.mark.parametrize(
     "content, message",
     [

@@ -50,6 +50,8 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
               help="Seed of every random draw.")
 @click.option("--max-std", type=click.FloatRange(min=0, min_open=True), metavar="PIXELS",
               help="Write a row as not visible when the std along its covariance's major axis exceeds PIXELS (output.max_std).")
+@click.option("--forward-only", is_flag=True,
+              help="Track each point from its query frame on only: no rows before it, no backward pass (output.backward=false).")
 @click.option("--smooth", is_flag=True, help="Two-way smoothing: each frame's estimate also uses the later frames (filter.smooth).")
 @click.option("--untrackable", type=click.Choice(["keep", "drop", "error"]),
               help="Queries whose Shi-Tomasi score is at or below detect.min_eigenvalue: keep (tracked, with a warning; "
@@ -62,7 +64,7 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 @batch_options
 @click.option("-q", "--quiet", is_flag=True, help="No progress bar, summary or warnings on stderr.")
 def track(inputs, config_path, queries_path, method, output_path, overlay_path, overlay_points, ellipses, ellipse_cap,
-          seed, max_std, smooth, untrackable, overrides, list_path, out_dir, batch_format, jobs, quiet, threads,
+          seed, max_std, forward_only, smooth, untrackable, overrides, list_path, out_dir, batch_format, jobs, quiet, threads,
           **batch) -> None:
     """Track points through INPUT, a folder of frames or a video file.
 
@@ -88,7 +90,8 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     if not in_batch:
         refuse_batch_options({**batch, "jobs": jobs})
     flags = ((["filter.smooth=true"] if smooth else []) + ([f"detect.untrackable={untrackable}"] if untrackable else [])
-             + ([f"output.max_std={max_std!r}"] if max_std is not None else []))
+             + ([f"output.max_std={max_std!r}"] if max_std is not None else [])
+             + (["output.backward=false"] if forward_only else []))
     config: Config = load_config(config_path, list(overrides) + flags, method)
     if not in_batch:
         threads, warning = threads_per_job(requested_threads(threads), 1)

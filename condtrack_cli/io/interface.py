@@ -24,6 +24,7 @@ class OutputSettings(StageSettings):
     store_measurements: bool = Field(True, description="write /measurements/z and /measurements/R to HDF5")
     store_particles: bool = Field(False, description="write the CNLF's particles to HDF5 (/particles/xy; large)")
     store_segmentation: bool = Field(False, description="write the motion segmentation maps of auto to HDF5 (/segmentation)")
+    backward: bool = Field(True, description="also track each point backward from its query frame (its rows before it); false: rows from the query frame on only, no backward pass (--forward-only)")
     max_std: float | None = Field(None, gt=0, description="write a row as not visible when the std along its covariance's major axis exceeds this (px; --max-std); null: off")
 
 

@@ -25,6 +25,10 @@ PAPER_SPEED_METHODS = ("clf",)
 #: Issue 26's targets: the largest whole-process time of each method over the OpenCV script's, same run.
 TIME_TARGETS = {"clf": 4.0, "auto": 5.0, "cnlf": 6.0, "stk": 1.3}
 
+#: Suffix of the rows run with ``--forward-only`` where the scene has queries after frame 0: like the OpenCV
+#: script, they track each point from its query frame on only (no backward pass), the like-for-like comparison.
+FORWARD_ONLY = " --forward-only"
+
 #: The shared clip of the speed comparison on real frames (KITTI, 1242x375).
 SPEED_CLIP = "kt3dmoseg_seq005_clip01"
 
@@ -93,10 +97,12 @@ def speed_table(work: Path, shared: Path, repeats: int = 3, threads: int | None 
     with the forward-backward check, CSV out) then each of ``SPEED_METHODS`` (``condtrack
     track``, start-up and writing the HDF5 file included), one process each; the
     table gives the median wall time, its ratio to the script's median of the same
-    run, the largest peak RSS and issue 26's check. ``threads``: both sides pinned
+    run, the largest peak RSS and issue 26's check. Where the scene's queries span
+    several frames, each method runs again with ``--forward-only`` (rows from the query
+    frame on, as the script writes). ``threads``: both sides pinned
     to that many threads (``--threads`` and ``cv2.setNumThreads``); None: their defaults.
     """
-    methods = ("opencv-lk",) + SPEED_METHODS + tuple(f"paper {m}" for m in PAPER_SPEED_METHODS)
+    paper = tuple(f"paper {m}" for m in PAPER_SPEED_METHODS)
     pinned = [] if threads is None else ["--threads", str(threads)]
     compile_package()
     lines = [
@@ -104,10 +110,15 @@ def speed_table(work: Path, shared: Path, repeats: int = 3, threads: int | None 
         "and its ratio to the plain OpenCV LK script (`condtrack_cli/evaluate/plain_lk.py`: calcOpticalFlowPyrLK "
         "winSize 21, maxLevel 3, forward-backward check 1 px, CSV out) of the same run"
         + (f", both pinned to {threads} thread(s)" if threads else ", each with its default threads") + ". "
-        "Issue 26's targets: " + ", ".join(f"{m} <= {x:g}x" for m, x in TIME_TARGETS.items()) + ", peak RSS <= 300 MiB.",
+        "Issue 26's targets: " + ", ".join(f"{m} <= {x:g}x" for m, x in TIME_TARGETS.items()) + ", peak RSS <= 300 MiB. "
+        f"Rows `METHOD{FORWARD_ONLY}` (scenes whose queries span several frames): condtrack without its backward "
+        "pass, rows from each query frame on only, as the script writes them.",
         "",
     ]
     for title, folder, queries in speed_scenes(work, shared):
+        spans = np.loadtxt(queries, delimiter=",", skiprows=1, ndmin=2)[:, 1].max() > 0
+        ahead = tuple(m + FORWARD_ONLY for m in SPEED_METHODS) if spans else ()
+        methods = ("opencv-lk",) + SPEED_METHODS + ahead + paper
         times, peaks, failed = {m: [] for m in methods}, {m: 0.0 for m in methods}, {}
         for _ in range(repeats):
             for method in methods:
@@ -119,8 +130,10 @@ def speed_table(work: Path, shared: Path, repeats: int = 3, threads: int | None 
                         [str(folder), "-p", str(queries), "-c", str(PAPER_CONFIG), "-m", plain,
                          "-o", str(work / f"speed.paper-{plain}.h5")] + pinned)
                 else:
+                    plain = method.removesuffix(FORWARD_ONLY)
                     seconds, rss, code, message = run_track(
-                        [str(folder), "-p", str(queries), "-m", method, "-o", str(work / f"speed.{method}.h5")] + pinned)
+                        [str(folder), "-p", str(queries), "-m", plain, "-o", str(work / f"speed.{plain}.h5")] + pinned
+                        + (["--forward-only"] if method.endswith(FORWARD_ONLY) else []))
                 if code:
                     failed[method] = message
                 times[method].append(seconds)
@@ -133,7 +146,7 @@ def speed_table(work: Path, shared: Path, repeats: int = 3, threads: int | None 
                 lines.append(f"| {method} | failed: {failed[method]} | | | |")
                 continue
             median = float(np.median(times[method]))
-            target = TIME_TARGETS.get(method)
+            target = TIME_TARGETS.get(method.removesuffix(FORWARD_ONLY))
             check = "" if target is None else ("pass" if median / lk <= target else "FAIL") + f" (<= {target:g}x)"
             lines.append(f"| {method} | {median:.2f} | {median / lk:.1f} | {peaks[method]:.0f} | {check} |")
             print(lines[-1], file=sys.stderr)
