@@ -154,7 +154,7 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
     x = centres[:, 0, None, None] + grid[None, None, :]  # (P, 1, G) candidate columns
     y = centres[:, 1, None, None] + grid[None, :, None]  # (P, G, 1) candidate rows
     r_full = ssd_surfaces(gray, templates, centres, reach, settings.cost, sums)
-    r_full = np.where((x >= 0) & (x < width) & (y >= 0) & (y < height), r_full, np.inf)  # outside the frame
+    np.copyto(r_full, np.inf, where=((x < 0) | (x >= width)) | ((y < 0) | (y >= height)))  # outside the frame
 
     inner = slice(half, half + 2 * largest + 1)  # the candidate offsets, |dx|, |dy| <= largest
     dx, dy = grid[None, None, inner], grid[None, inner, None]
@@ -162,9 +162,12 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
     a, b, c = gate_cov[:, 0, 0, None, None], gate_cov[:, 0, 1, None, None], gate_cov[:, 1, 1, None, None]
     det = a * c - b * b
     proper = np.isfinite(det) & (det > 0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        quadratic = (c * nu_x**2 - 2 * b * nu_x * nu_y + a * nu_y**2) / np.where(proper, det, 1.0)
-    mahalanobis = np.where(proper, quadratic, 0.0)  # nu^T S^-1 nu; a degenerate S leaves only the square
+    with np.errstate(invalid="ignore", divide="ignore"):  # nu^T S^-1 nu, one (P, G', G') array updated in place
+        mahalanobis = 2 * b * nu_x * nu_y
+        np.subtract(c * nu_x**2, mahalanobis, out=mahalanobis)
+        mahalanobis += a * nu_y**2
+        mahalanobis /= np.where(proper, det, 1.0)
+    mahalanobis[~proper[:, 0, 0]] = 0.0  # a degenerate S leaves only the square
     chebyshev = np.maximum(np.abs(dx), np.abs(dy))
     gate = (chebyshev <= half_sizes[:, None, None]) & ((mahalanobis <= settings.gamma) | (chebyshev <= settings.search_min))
     candidates = r_full[:, inner, inner]
@@ -187,26 +190,32 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
     peak = residual[:, None, None]
     neighbours = support[:, half - 1 : half + 2, half - 1 : half + 2]
     at_minimum = (neighbours >= peak).all(axis=(1, 2))  # else a lower residual lies just outside the gate
-    lowest_around = np.full(candidates.shape, np.inf)
-    for v, u in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
-        shifted = r_full[:, half + v : half + v + side, half + u : half + u + side]
-        np.minimum(lowest_around, shifted, out=lowest_around)
-    level = gated
-    if settings.equalise_alpha is not None:  # eq. (10) over the gate, as on the support
-        level = np.where(gated < noise_threshold(sigma, t * t, settings.equalise_alpha), peak, gated)
-    with np.errstate(invalid="ignore"):
-        excess = c_eq8[:, None, None] * (level - peak)
-    if settings.ambiguity_ratio is None:  # off (the paper's): only eq. (10) and the uniform test judge the surface
-        competitive = np.zeros_like(gate)
-    else:
-        competitive = (level == peak) | (excess <= np.log(1.0 / settings.ambiguity_ratio))  # exp(-c r) >= ratio * peak's
-    distance = np.maximum(np.abs(dy + reach - row[:, None, None]), np.abs(dx + reach - col[:, None, None]))
-    second = gate & (distance > half) & (candidates <= lowest_around) & competitive  # deep local minima beyond W
-    informative = found & informative & at_minimum & ~second.any(axis=(1, 2))
+    second = np.zeros(count, bool)  # a deep local minimum in the gate beyond W(z_k)
+    if settings.ambiguity_ratio is not None:  # None: off (the paper's), only eq. (10) and the uniform test judge
+        far = (np.abs(dy + reach - row[:, None, None]) > half) | (np.abs(dx + reach - col[:, None, None]) > half)
+        minima = gate & far & (candidates <= _lowest_around(r_full, half, side))  # local minima beyond W
+        point, i, j = np.nonzero(minima)  # few: the depth test runs on them only
+        level, lowest = candidates[point, i, j], residual[point]
+        if settings.equalise_alpha is not None:  # eq. (10) over the gate, as on the support
+            level = np.where(level < noise_threshold(sigma, t * t, settings.equalise_alpha), lowest, level)
+        with np.errstate(invalid="ignore"):
+            excess = c_eq8[point] * (level - lowest)
+        competitive = (level == lowest) | (excess <= np.log(1.0 / settings.ambiguity_ratio))  # exp(-c r) >= ratio * peak's
+        second[point[competitive]] = True
+    informative = found & informative & at_minimum & ~second
     R = np.where(informative[:, None, None], R, infinite_covariance(count))
     return Measurement(
         z=np.where(found[:, None], z, np.nan), R=R, residual=np.where(found, residual, np.nan), informative=informative
     )
+
+
+def _lowest_around(r_full: np.ndarray, half: int, side: int) -> np.ndarray:
+    """(P, side, side) the lowest of the 8 neighbours of each candidate of ``r_full`` (P, G, G), G >= side + 2,
+    whose candidates start at index ``half``: three separable minima, exact (no rounding)."""
+    band = r_full[:, half - 1 : half + side + 1]  # the candidates' rows and one more on each side
+    pair = np.minimum(band[:, :, half - 1 : half - 1 + side], band[:, :, half + 1 : half + 1 + side])  # left, right
+    triple = np.minimum(pair, band[:, :, half : half + side])
+    return np.minimum(np.minimum(triple[:, :-2], triple[:, 2:]), pair[:, 1:-1])
 
 
 class SSDMeasure:
