@@ -113,7 +113,7 @@ def measure(
         return Measurement(z, R, residual, informative)
     half_sizes = _half_sizes(gate_cov, settings)
     if sums is None:
-        sums = frame_sums(gray, settings.template)
+        sums = frame_sums(gray, settings.template, settings.cost)
     for points in _search_groups(half_sizes, known, settings):
         part = _measure_group(gray, sums, templates[points], predicted[points], gate_cov[points],
                               half_sizes[points], settings, sigma)
@@ -247,7 +247,7 @@ class SSDMeasure:
     ) -> Measurement:
         """:func:`measure` with this stage's settings; the frame's window sums computed once per frame."""
         if self._sums is None or self._sums[0] is not gray:
-            self._sums = (gray, frame_sums(gray, self.settings.template))
+            self._sums = (gray, frame_sums(gray, self.settings.template, self.settings.cost))
         return measure(gray, templates, predicted, gate_cov, self.settings, sigma, self._sums[1])
 
 
