@@ -159,31 +159,39 @@ def matching_cost(templates: np.ndarray, patches: np.ndarray, cost: str) -> np.n
     return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
 
 
+def _towards(mid: np.ndarray, after: np.ndarray, before: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Linear interpolation mid + |f| (after - mid) where f >= 0, mid + |f| (before - mid) elsewhere, (P, 1, 1) f."""
+    moved = np.where(f >= 0, after, before)
+    moved -= mid
+    moved *= np.abs(f)
+    moved += mid
+    return moved
+
+
 def _shift(window: np.ndarray, offset: np.ndarray) -> np.ndarray:
     """(P, a - 2, b - 2) bilinear samples of (P, a, b) windows at their inner pixels moved by (P, 2) ``offset``.
 
     |offset| <= 1 px on each axis; the windows' borders supply the neighbours.
     """
     fx, fy = offset[:, 0, None, None], offset[:, 1, None, None]
-    left, mid, right = window[:, :, :-2], window[:, :, 1:-1], window[:, :, 2:]
-    rows = mid + np.where(fx >= 0, fx * (right - mid), -fx * (left - mid))
-    up, mid, down = rows[:, :-2], rows[:, 1:-1], rows[:, 2:]
-    return mid + np.where(fy >= 0, fy * (down - mid), -fy * (up - mid))
+    rows = _towards(window[:, :, 1:-1], window[:, :, 2:], window[:, :, :-2], fx)
+    return _towards(rows[:, 1:-1], rows[:, 2:], rows[:, :-2], fy)
 
 
 def refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str = "ssd") -> np.ndarray:
     """(P, 2) sub-pixel z_k: the continuous minimum of eq. (6) within +-0.5 px of the integer minimum ``start``.
 
-    Gauss-Newton on r(z) = sum_y [T(y) - I_k(z + y)]^2 with I_k bilinear (border
-    replicated) and its gradient by central differences, ``_REFINE_STEPS`` steps,
-    each clamped so that z stays within the integer minimum's cell. The normal
+    start: (P, 2) integer-valued positions (px). Gauss-Newton on r(z) = sum_y [T(y) - I_k(z + y)]^2
+    with I_k bilinear (border replicated) and its gradient by central differences, ``_REFINE_STEPS``
+    steps, each clamped so that z stays within the integer minimum's cell. The normal
     matrix is damped by 1e-3 of its trace so that the step along an edge (no
     information) stays small. Other ``cost``: that of :func:`matching_cost`, the
     frame patch given the template's mean (and contrast) at each step (held
     fixed within a step).
     """
     t = templates.shape[1]
-    window = extract_templates(gray, start, t + 4).astype(np.float64)  # I_k at start + [-t//2 - 2, t//2 + 2]^2
+    # I_k at start + [-t//2 - 2, t//2 + 2]^2: frame pixels (start is integer), clamped into the frame
+    window = _windows(gray, start.astype(np.intp), t // 2 + 2).astype(np.float64)
     reference = templates.astype(np.float64)
     if cost != "ssd":
         reference = reference - reference.mean(axis=(1, 2), keepdims=True)
@@ -192,11 +200,11 @@ def refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str
     for _ in range(_REFINE_STEPS):
         moved = _shift(window, offset)  # I_k at z + [-t//2 - 1, t//2 + 1]^2
         if cost != "ssd":
-            inner = moved[:, 1:-1, 1:-1]
-            centred = inner - inner.mean(axis=(1, 2), keepdims=True)
-            spread = (centred * centred).sum(axis=(1, 2))
-            gain = np.sqrt(energy / np.where(spread > 0, spread, np.inf))[:, None, None] if cost == "normalised" else 1.0
-            moved = (moved - inner.mean(axis=(1, 2), keepdims=True)) * gain
+            moved -= moved[:, 1:-1, 1:-1].mean(axis=(1, 2), keepdims=True)
+            if cost == "normalised":
+                centred = moved[:, 1:-1, 1:-1]
+                spread = (centred * centred).sum(axis=(1, 2))
+                moved *= np.sqrt(energy / np.where(spread > 0, spread, np.inf))[:, None, None]
         gx = (moved[:, 1:-1, 2:] - moved[:, 1:-1, :-2]) / 2.0
         gy = (moved[:, 2:, 1:-1] - moved[:, :-2, 1:-1]) / 2.0
         error = reference - moved[:, 1:-1, 1:-1]
