@@ -66,6 +66,9 @@ from condtrack_cli.measure.response import SSDSettings, infinite_covariance, res
 from condtrack_cli.measure.surfaces import FrameSums, extract_templates, frame_sums, matching_cost, refine, ssd_surfaces
 from condtrack_cli.registry import register
 
+#: The 8 neighbours (row, column offsets) of a cell.
+_NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
+
 #: Most points per group of the search: bounds the (P, G, G) temporaries (about 100 kB per point at the largest gate).
 _CHUNK = 512
 
@@ -192,30 +195,29 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
     at_minimum = (neighbours >= peak).all(axis=(1, 2))  # else a lower residual lies just outside the gate
     second = np.zeros(count, bool)  # a deep local minimum in the gate beyond W(z_k)
     if settings.ambiguity_ratio is not None:  # None: off (the paper's), only eq. (10) and the uniform test judge
-        far = (np.abs(dy + reach - row[:, None, None]) > half) | (np.abs(dx + reach - col[:, None, None]) > half)
-        minima = gate & far & (candidates <= _lowest_around(r_full, half, side))  # local minima beyond W
-        point, i, j = np.nonzero(minima)  # few: the depth test runs on them only
+        log_ratio = np.log(1.0 / settings.ambiguity_ratio)
+        equalised = -np.inf if settings.equalise_alpha is None else noise_threshold(sigma, t * t, settings.equalise_alpha)
+        # The depth test below accepts the residuals up to a bound (it is monotone in the residual): a looser
+        # bound (twice its excess, 4 ulps more) leaves it the candidates it may accept, of the points it can change.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            slack = np.where(c_eq8 > 0, 2.0 * log_ratio / c_eq8, np.inf) + 4.0 * np.spacing(residual)
+        limit = np.where(found & informative & at_minimum, np.maximum(residual + slack, equalised), -np.inf)
+        point, i, j = np.nonzero(gated <= limit[:, None, None])
+        beyond = gate[point, i, j] & ((np.abs(i + half - row[point]) > half) | (np.abs(j + half - col[point]) > half))
+        point, i, j = point[beyond], i[beyond], j[beyond]  # in the gate, beyond W(z_k)
         level, lowest = candidates[point, i, j], residual[point]
+        minimum = level <= np.min([r_full[point, i + half + v, j + half + u] for v, u in _NEIGHBOURS], axis=0)
         if settings.equalise_alpha is not None:  # eq. (10) over the gate, as on the support
-            level = np.where(level < noise_threshold(sigma, t * t, settings.equalise_alpha), lowest, level)
+            level = np.where(level < equalised, lowest, level)
         with np.errstate(invalid="ignore"):
             excess = c_eq8[point] * (level - lowest)
-        competitive = (level == lowest) | (excess <= np.log(1.0 / settings.ambiguity_ratio))  # exp(-c r) >= ratio * peak's
-        second[point[competitive]] = True
+        competitive = (level == lowest) | (excess <= log_ratio)  # exp(-c r) >= ratio * peak's
+        second[point[minimum & competitive]] = True
     informative = found & informative & at_minimum & ~second
     R = np.where(informative[:, None, None], R, infinite_covariance(count))
     return Measurement(
         z=np.where(found[:, None], z, np.nan), R=R, residual=np.where(found, residual, np.nan), informative=informative
     )
-
-
-def _lowest_around(r_full: np.ndarray, half: int, side: int) -> np.ndarray:
-    """(P, side, side) the lowest of the 8 neighbours of each candidate of ``r_full`` (P, G, G), G >= side + 2,
-    whose candidates start at index ``half``: three separable minima, exact (no rounding)."""
-    band = r_full[:, half - 1 : half + side + 1]  # the candidates' rows and one more on each side
-    pair = np.minimum(band[:, :, half - 1 : half - 1 + side], band[:, :, half + 1 : half + 1 + side])  # left, right
-    triple = np.minimum(pair, band[:, :, half : half + side])
-    return np.minimum(np.minimum(triple[:, :-2], triple[:, 2:]), pair[:, 1:-1])
 
 
 class SSDMeasure:
