@@ -62,7 +62,7 @@ def frame_sums(gray: np.ndarray, side: int, cost: str = "ssd") -> FrameSums:
     squares = cv2.sqrBoxFilter(frame, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
     if cost == "ssd":
         return FrameSums(total, squares, None, side, cost)
-    spread = total * total  # max(squares - total^2 / side^2, 0), in place
+    spread = np.multiply(total, total, out=total)  # max(squares - total^2 / side^2, 0), in place of total
     spread /= side * side
     np.subtract(squares, spread, out=spread)
     return FrameSums(None, None, np.maximum(spread, 0.0, out=spread), side, cost)
@@ -197,8 +197,9 @@ def refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str
         reference = reference - reference.mean(axis=(1, 2), keepdims=True)
         energy = (reference * reference).sum(axis=(1, 2))
     offset = np.zeros(start.shape)
-    for _ in range(_REFINE_STEPS):
-        moved = _shift(window, offset)  # I_k at z + [-t//2 - 1, t//2 + 1]^2
+    for step in range(_REFINE_STEPS):
+        # I_k at z + [-t//2 - 1, t//2 + 1]^2; at the first step z = start, the window's inner pixels
+        moved = _shift(window, offset) if step else window[:, 1:-1, 1:-1].copy()
         if cost != "ssd":
             moved -= moved[:, 1:-1, 1:-1].mean(axis=(1, 2), keepdims=True)
             if cost == "normalised":
