@@ -199,7 +199,8 @@ def response(
     # likelihood-ratio form G = 2 N KL(D_k || uniform); with N = 49 at 5%, the uniform law is rejected when
     # KL > 0.67 nat: D_k fills less than half of W. ``pearson``: the paper's "test du chi-deux",
     # X^2 = sum (N D_k - 1)^2 = N^2 sum D_k^2 - N (it rejects more readily: a peak on a few cells weighs more).
-    entropy = -xlogx(d).sum(axis=(1, 2))
+    d_log_d = xlogx(d)
+    entropy = -d_log_d.sum(axis=(1, 2))
     kl_uniform = np.log(n_available) - entropy
     critical = chi2_quantiles(1.0 - settings.uniform_alpha, np.maximum(n_available - 1, 1))
     if settings.uniform_test == "pearson":
@@ -212,7 +213,7 @@ def response(
     quadratic = ryy * du * du - 2 * rxy * du * dv + rxx * dv * dv
     log_g = np.where(available, -0.5 * quadratic / det[:, None, None], -np.inf)  # N(z_k, R_k) on W
     log_g = np.where(available, log_g - logsumexp(log_g, axis=(1, 2), keepdims=True), 0.0)
-    kl_gauss = (xlogx(d) - d * log_g).sum(axis=(1, 2))
+    kl_gauss = (d_log_d - d * log_g).sum(axis=(1, 2))
     informative = ~empty & (n_available >= 2) & uniform_rejected & (kl_gauss < kl_uniform)
     if settings.ambiguity_ratio is not None:  # None: off (the paper's)
         judged = np.flatnonzero(informative)  # the one-peak test can only turn these uninformative
