@@ -72,8 +72,9 @@ def within_2px(cells: np.ndarray) -> np.ndarray:
     done as two separable ORs of shifted views; numpy, not scipy.ndimage, whose
     import costs about 0.05 s of every run's start-up (issue 13).
     """
-    rows, cols = cells.shape[1:]
-    padded = np.pad(cells, ((0, 0), (2, 2), (2, 2)))
+    count, rows, cols = cells.shape
+    padded = np.zeros((count, rows + 4, cols + 4), bool)
+    padded[:, 2:-2, 2:-2] = cells
     along_x = padded[:, :, :cols].copy()
     for shift in range(1, 5):
         along_x |= padded[:, :, shift : shift + cols]
@@ -130,15 +131,23 @@ def _separate(cells: np.ndarray, row: np.ndarray, col: np.ndarray) -> np.ndarray
     """(P,) True where some of ``cells`` (P, a, b) are 3 px or more (Chebyshev) from the group of cell (row, col).
 
     The group grows from (row, col) through cells at most 2 px apart, so that a steep
-    oblique valley, which the grid samples with one-cell gaps, stays one group.
+    oblique valley, which the grid samples with one-cell gaps, stays one group. Its first
+    step takes every cell within 2 px of (row, col): the points whose cells all lie there
+    (a sharp peak, the usual case) are settled without growing.
     """
+    rows, cols = np.arange(cells.shape[1]), np.arange(cells.shape[2])
+    near = (np.abs(rows[:, None] - row[:, None, None]) <= 2) & (np.abs(cols - col[:, None, None]) <= 2)
+    grow = ~cells[np.arange(len(cells)), row, col] | (cells & ~near).any(axis=(1, 2))
+    cells, row, col = cells[grow], row[grow], col[grow]
     group = np.zeros_like(cells)
     index = np.arange(len(cells))
     group[index, row, col] = cells[index, row, col]
     while True:
         grown = cells & within_2px(group)
         if np.array_equal(grown, group):
-            return (cells & ~group).any(axis=(1, 2))
+            separate = np.zeros(len(grow), bool)
+            separate[grow] = (cells & ~group).any(axis=(1, 2))
+            return separate
         group = grown
 
 
@@ -190,7 +199,8 @@ def response(
     # likelihood-ratio form G = 2 N KL(D_k || uniform); with N = 49 at 5%, the uniform law is rejected when
     # KL > 0.67 nat: D_k fills less than half of W. ``pearson``: the paper's "test du chi-deux",
     # X^2 = sum (N D_k - 1)^2 = N^2 sum D_k^2 - N (it rejects more readily: a peak on a few cells weighs more).
-    entropy = -xlogx(d).sum(axis=(1, 2))
+    d_log_d = xlogx(d)
+    entropy = -d_log_d.sum(axis=(1, 2))
     kl_uniform = np.log(n_available) - entropy
     critical = chi2_quantiles(1.0 - settings.uniform_alpha, np.maximum(n_available - 1, 1))
     if settings.uniform_test == "pearson":
@@ -203,14 +213,13 @@ def response(
     quadratic = ryy * du * du - 2 * rxy * du * dv + rxx * dv * dv
     log_g = np.where(available, -0.5 * quadratic / det[:, None, None], -np.inf)  # N(z_k, R_k) on W
     log_g = np.where(available, log_g - logsumexp(log_g, axis=(1, 2), keepdims=True), 0.0)
-    kl_gauss = (xlogx(d) - d * log_g).sum(axis=(1, 2))
-    if settings.ambiguity_ratio is None:  # off (the paper's)
-        one_mode = np.ones(count, bool)
-    else:
-        peak = available & (energy <= np.log(1.0 / settings.ambiguity_ratio))  # D_k >= ambiguity_ratio * max D_k
-        centre = np.full(count, half)
-        one_mode = ~_separate(peak, centre, centre)
-    informative = ~empty & (n_available >= 2) & uniform_rejected & (kl_gauss < kl_uniform) & one_mode
+    kl_gauss = (d_log_d - d * log_g).sum(axis=(1, 2))
+    informative = ~empty & (n_available >= 2) & uniform_rejected & (kl_gauss < kl_uniform)
+    if settings.ambiguity_ratio is not None:  # None: off (the paper's)
+        judged = np.flatnonzero(informative)  # the one-peak test can only turn these uninformative
+        peak = available[judged] & (energy[judged] <= np.log(1.0 / settings.ambiguity_ratio))  # D_k >= ratio * max D_k
+        centre = np.full(len(judged), half)
+        informative[judged] = ~_separate(peak, centre, centre)
     return R, informative, c
 
 

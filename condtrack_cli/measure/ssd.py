@@ -66,6 +66,9 @@ from condtrack_cli.measure.response import SSDSettings, infinite_covariance, res
 from condtrack_cli.measure.surfaces import FrameSums, extract_templates, frame_sums, matching_cost, refine, ssd_surfaces
 from condtrack_cli.registry import register
 
+#: The 8 neighbours (row, column offsets) of a cell.
+_NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
+
 #: Most points per group of the search: bounds the (P, G, G) temporaries (about 100 kB per point at the largest gate).
 _CHUNK = 512
 
@@ -113,7 +116,7 @@ def measure(
         return Measurement(z, R, residual, informative)
     half_sizes = _half_sizes(gate_cov, settings)
     if sums is None:
-        sums = frame_sums(gray, settings.template)
+        sums = frame_sums(gray, settings.template, settings.cost)
     for points in _search_groups(half_sizes, known, settings):
         part = _measure_group(gray, sums, templates[points], predicted[points], gate_cov[points],
                               half_sizes[points], settings, sigma)
@@ -154,7 +157,7 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
     x = centres[:, 0, None, None] + grid[None, None, :]  # (P, 1, G) candidate columns
     y = centres[:, 1, None, None] + grid[None, :, None]  # (P, G, 1) candidate rows
     r_full = ssd_surfaces(gray, templates, centres, reach, settings.cost, sums)
-    r_full = np.where((x >= 0) & (x < width) & (y >= 0) & (y < height), r_full, np.inf)  # outside the frame
+    np.copyto(r_full, np.inf, where=((x < 0) | (x >= width)) | ((y < 0) | (y >= height)))  # outside the frame
 
     inner = slice(half, half + 2 * largest + 1)  # the candidate offsets, |dx|, |dy| <= largest
     dx, dy = grid[None, None, inner], grid[None, inner, None]
@@ -162,9 +165,12 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
     a, b, c = gate_cov[:, 0, 0, None, None], gate_cov[:, 0, 1, None, None], gate_cov[:, 1, 1, None, None]
     det = a * c - b * b
     proper = np.isfinite(det) & (det > 0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        quadratic = (c * nu_x**2 - 2 * b * nu_x * nu_y + a * nu_y**2) / np.where(proper, det, 1.0)
-    mahalanobis = np.where(proper, quadratic, 0.0)  # nu^T S^-1 nu; a degenerate S leaves only the square
+    with np.errstate(invalid="ignore", divide="ignore"):  # nu^T S^-1 nu, one (P, G', G') array updated in place
+        mahalanobis = 2 * b * nu_x * nu_y
+        np.subtract(c * nu_x**2, mahalanobis, out=mahalanobis)
+        mahalanobis += a * nu_y**2
+        mahalanobis /= np.where(proper, det, 1.0)
+    mahalanobis[~proper[:, 0, 0]] = 0.0  # a degenerate S leaves only the square
     chebyshev = np.maximum(np.abs(dx), np.abs(dy))
     gate = (chebyshev <= half_sizes[:, None, None]) & ((mahalanobis <= settings.gamma) | (chebyshev <= settings.search_min))
     candidates = r_full[:, inner, inner]
@@ -187,22 +193,27 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
     peak = residual[:, None, None]
     neighbours = support[:, half - 1 : half + 2, half - 1 : half + 2]
     at_minimum = (neighbours >= peak).all(axis=(1, 2))  # else a lower residual lies just outside the gate
-    lowest_around = np.full(candidates.shape, np.inf)
-    for v, u in ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1)):
-        shifted = r_full[:, half + v : half + v + side, half + u : half + u + side]
-        np.minimum(lowest_around, shifted, out=lowest_around)
-    level = gated
-    if settings.equalise_alpha is not None:  # eq. (10) over the gate, as on the support
-        level = np.where(gated < noise_threshold(sigma, t * t, settings.equalise_alpha), peak, gated)
-    with np.errstate(invalid="ignore"):
-        excess = c_eq8[:, None, None] * (level - peak)
-    if settings.ambiguity_ratio is None:  # off (the paper's): only eq. (10) and the uniform test judge the surface
-        competitive = np.zeros_like(gate)
-    else:
-        competitive = (level == peak) | (excess <= np.log(1.0 / settings.ambiguity_ratio))  # exp(-c r) >= ratio * peak's
-    distance = np.maximum(np.abs(dy + reach - row[:, None, None]), np.abs(dx + reach - col[:, None, None]))
-    second = gate & (distance > half) & (candidates <= lowest_around) & competitive  # deep local minima beyond W
-    informative = found & informative & at_minimum & ~second.any(axis=(1, 2))
+    second = np.zeros(count, bool)  # a deep local minimum in the gate beyond W(z_k)
+    if settings.ambiguity_ratio is not None:  # None: off (the paper's), only eq. (10) and the uniform test judge
+        log_ratio = np.log(1.0 / settings.ambiguity_ratio)
+        equalised = -np.inf if settings.equalise_alpha is None else noise_threshold(sigma, t * t, settings.equalise_alpha)
+        # The depth test below accepts the residuals up to a bound (it is monotone in the residual): a looser
+        # bound (twice its excess, 4 ulps more) leaves it the candidates it may accept, of the points it can change.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            slack = np.where(c_eq8 > 0, 2.0 * log_ratio / c_eq8, np.inf) + 4.0 * np.spacing(residual)
+        limit = np.where(found & informative & at_minimum, np.maximum(residual + slack, equalised), -np.inf)
+        point, i, j = np.nonzero(gated <= limit[:, None, None])
+        beyond = gate[point, i, j] & ((np.abs(i + half - row[point]) > half) | (np.abs(j + half - col[point]) > half))
+        point, i, j = point[beyond], i[beyond], j[beyond]  # in the gate, beyond W(z_k)
+        level, lowest = candidates[point, i, j], residual[point]
+        minimum = level <= np.min([r_full[point, i + half + v, j + half + u] for v, u in _NEIGHBOURS], axis=0)
+        if settings.equalise_alpha is not None:  # eq. (10) over the gate, as on the support
+            level = np.where(level < equalised, lowest, level)
+        with np.errstate(invalid="ignore"):
+            excess = c_eq8[point] * (level - lowest)
+        competitive = (level == lowest) | (excess <= log_ratio)  # exp(-c r) >= ratio * peak's
+        second[point[minimum & competitive]] = True
+    informative = found & informative & at_minimum & ~second
     R = np.where(informative[:, None, None], R, infinite_covariance(count))
     return Measurement(
         z=np.where(found[:, None], z, np.nan), R=R, residual=np.where(found, residual, np.nan), informative=informative
@@ -238,7 +249,7 @@ class SSDMeasure:
     ) -> Measurement:
         """:func:`measure` with this stage's settings; the frame's window sums computed once per frame."""
         if self._sums is None or self._sums[0] is not gray:
-            self._sums = (gray, frame_sums(gray, self.settings.template))
+            self._sums = (gray, frame_sums(gray, self.settings.template, self.settings.cost))
         return measure(gray, templates, predicted, gate_cov, self.settings, sigma, self._sums[1])
 
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 #: Gauss-Newton steps of the sub-pixel refinement (median change after 3 steps: 0.01 px on photographs).
 _REFINE_STEPS = 3
@@ -36,25 +37,55 @@ def extract_templates(gray: np.ndarray, xy: np.ndarray, size: int) -> np.ndarray
 class FrameSums(NamedTuple):
     """Window sums of a frame at every pixel (:func:`frame_sums`), border replicated.
 
-    ``total`` and ``squares``: (H, W) float64, element [y, x] the sum of I (of I^2) over the
-    ``side`` x ``side`` window centred on pixel (x, y).
+    Element [y, x] of each (H, W) float64 table is a sum over the ``side`` x ``side`` window
+    centred on pixel (x, y): ``total`` and ``squares`` (cost 'ssd'), of I and of I^2; ``spread``
+    (the other costs), of I'^2 = max(sum I^2 - (sum I)^2 / side^2, 0) (I' = I less its mean).
+    None: not needed by ``cost``.
     """
 
-    total: np.ndarray
-    squares: np.ndarray
+    total: np.ndarray | None
+    squares: np.ndarray | None
+    spread: np.ndarray | None
     side: int
+    cost: str
 
 
-def frame_sums(gray: np.ndarray, side: int) -> FrameSums:
-    """:class:`FrameSums` of the (H, W) float32 frame ``gray`` for windows of odd ``side`` (px): two box filters
-    (float64, border replicated), computed once per frame; each candidate's window sums are then one look-up."""
+def frame_sums(gray: np.ndarray, side: int, cost: str = "ssd") -> FrameSums:
+    """:class:`FrameSums` of the (H, W) float32 frame ``gray`` for windows of odd ``side`` (px) and ``cost``: two
+    box filters (float64, border replicated), computed once per frame; each candidate's window sums are then one
+    look-up."""
     import cv2
 
     frame = np.asarray(gray, np.float64)
     window = (side, side)
     total = cv2.boxFilter(frame, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
     squares = cv2.sqrBoxFilter(frame, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
-    return FrameSums(total, squares, side)
+    if cost == "ssd":
+        return FrameSums(total, squares, None, side, cost)
+    spread = np.multiply(total, total, out=total)  # max(squares - total^2 / side^2, 0), in place of total
+    spread /= side * side
+    np.subtract(squares, spread, out=spread)
+    return FrameSums(None, None, np.maximum(spread, 0.0, out=spread), side, cost)
+
+
+def _windows(table: np.ndarray, centres: np.ndarray, reach: int) -> np.ndarray:
+    """(P, g, g) windows of a (H, W) ``table`` around (P, 2) integer (x, y) ``centres``, g = 2 reach + 1.
+
+    Element [p, i, j] is ``table`` at (x + j - reach, y + i - reach) clamped into the frame: one
+    slice per point when the window is inside the frame, clamped indices for the others.
+    """
+    height, width = table.shape
+    g = 2 * reach + 1
+    starts = centres - reach
+    inside = (starts >= 0).all(axis=1) & (starts[:, 0] + g <= width) & (starts[:, 1] + g <= height)
+    windows = np.empty((len(centres), g, g), table.dtype)
+    if inside.any():
+        windows[inside] = sliding_window_view(table, (g, g))[starts[inside, 1], starts[inside, 0]]
+    if not inside.all():
+        rows = np.clip(starts[~inside, 1, None] + np.arange(g), 0, height - 1)
+        cols = np.clip(starts[~inside, 0, None] + np.arange(g), 0, width - 1)
+        windows[~inside] = table[rows[:, :, None], cols[:, None, :]]
+    return windows
 
 
 def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, reach: int,
@@ -68,7 +99,7 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
     point: at these sizes (t = 11, G <= 39) that loop is 3-6 times faster than one batched
     FFT correlation of every patch (issue 26), and its float32 sums are within about 1e-6
     of the patches' energies of float64 ones. The window sums of I and I^2 are look-ups in
-    the frame's box sums ``sums`` (:func:`frame_sums` of t x t windows; computed here when
+    the frame's ``sums`` (:func:`frame_sums` of t x t windows for ``cost``; computed here when
     None). Exact for every candidate whose centre is inside the frame; the others' values
     are unspecified (the caller excludes them). ``cost`` 'ssd': the SSD,
     sum [T - I]^2 = sum I^2 - 2 sum I T' - 2 m sum I + t^2 m^2 + sum T'^2 (m = mean T).
@@ -79,48 +110,37 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
     """
     import cv2
 
-    height, width = gray.shape
     t = templates.shape[1]
     g = 2 * reach + 1
     if sums is None:
-        sums = frame_sums(gray, t)
-    if sums.side != t:
-        raise ValueError(f"frame_sums of {sums.side} px windows for {t} px templates")
-    span = np.arange(-(reach + t // 2), reach + t // 2 + 1)
-    image = np.ascontiguousarray(gray).ravel()
+        sums = frame_sums(gray, t, cost)
+    if (sums.side, sums.cost) != (t, cost):
+        raise ValueError(f"frame_sums of {sums.side} px windows for cost {sums.cost!r}: {t} px templates, cost {cost!r}")
     tmpl = templates.astype(np.float64)
     mean = tmpl.mean(axis=(1, 2), keepdims=True)
     tmpl -= mean
     energy = (tmpl * tmpl).sum(axis=(1, 2))[:, None, None]  # sum T'^2
-    rows = np.clip(centres[:, 1, None] + span, 0, height - 1)
-    cols = np.clip(centres[:, 0, None] + span, 0, width - 1)
-    patches = (image.take(rows[:, :, None] * width + cols[:, None, :]) - mean).astype(np.float32)  # less m: small sums
+    patches = np.empty((len(templates), g + t - 1, g + t - 1), np.float32)
+    np.subtract(_windows(gray, centres, reach + t // 2), mean, out=patches,
+                casting="same_kind")  # I - m in float64, rounded to float32: small sums
     kernels = tmpl.astype(np.float32)
-    sum_it = np.empty((len(templates), g, g))  # sum_y T'(y) (I(z + y) - m) = sum_y T'(y) I(z + y)
-    for p in range(len(templates)):
-        sum_it[p] = cv2.matchTemplate(patches[p], kernels[p], cv2.TM_CCORR)
-    sum_i, sum_sq = (_window_sums(table, centres, reach) for table in (sums.total, sums.squares))
-    area = t * t
+    sum_it = np.empty((len(templates), g, g), np.float32)  # sum_y T'(y) (I(z + y) - m) = sum_y T'(y) I(z + y)
+    for patch, kernel, out in zip(patches, kernels, sum_it):
+        cv2.matchTemplate(patch, kernel, cv2.TM_CCORR, result=out)
+    sum_it = sum_it.astype(np.float64)
     if cost == "ssd":
+        sum_i, sum_sq = (_windows(table, centres, reach) for table in (sums.total, sums.squares))
         m = mean[:, :, :1]
-        return np.maximum(sum_sq - 2.0 * m * sum_i + area * m * m - 2.0 * sum_it + energy, 0.0)  # eq. (6)
-    spread = np.maximum(sum_sq - sum_i * sum_i / area, 0.0)  # sum I'^2
-    if cost == "zero_mean":
-        return np.maximum(spread - 2.0 * sum_it + energy, 0.0)
+        return np.maximum(sum_sq - 2.0 * m * sum_i + t * t * m * m - 2.0 * sum_it + energy, 0.0)  # eq. (6)
+    spread = _windows(sums.spread, centres, reach)  # sum I'^2
+    if cost == "zero_mean":  # spread - 2 sum_it + energy, in place
+        sum_it *= -2.0
+        sum_it += spread
+        sum_it += energy
+        return np.maximum(sum_it, 0.0, out=sum_it)
     with np.errstate(invalid="ignore", divide="ignore"):
         rho = np.where(spread > 0, sum_it / np.sqrt(energy * spread), 0.0)
     return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
-
-
-def _window_sums(table: np.ndarray, centres: np.ndarray, reach: int) -> np.ndarray:
-    """(P, g, g) window sums of every candidate, g = 2 reach + 1: ``table`` (a :class:`FrameSums` map, (H, W)) at
-    centres (P, 2) integer (x, y) + (j - reach, i - reach). Look-ups outside the frame are clamped (their
-    candidates' centres lie outside the frame)."""
-    height, width = table.shape
-    offsets = np.arange(-reach, reach + 1)
-    rows = np.clip(centres[:, 1, None] + offsets, 0, height - 1)
-    cols = np.clip(centres[:, 0, None] + offsets, 0, width - 1)
-    return table.ravel().take(rows[:, :, None] * width + cols[:, None, :])
 
 
 def matching_cost(templates: np.ndarray, patches: np.ndarray, cost: str) -> np.ndarray:
@@ -139,44 +159,53 @@ def matching_cost(templates: np.ndarray, patches: np.ndarray, cost: str) -> np.n
     return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
 
 
+def _towards(mid: np.ndarray, after: np.ndarray, before: np.ndarray, f: np.ndarray) -> np.ndarray:
+    """Linear interpolation mid + |f| (after - mid) where f >= 0, mid + |f| (before - mid) elsewhere, (P, 1, 1) f."""
+    moved = np.where(f >= 0, after, before)
+    moved -= mid
+    moved *= np.abs(f)
+    moved += mid
+    return moved
+
+
 def _shift(window: np.ndarray, offset: np.ndarray) -> np.ndarray:
     """(P, a - 2, b - 2) bilinear samples of (P, a, b) windows at their inner pixels moved by (P, 2) ``offset``.
 
     |offset| <= 1 px on each axis; the windows' borders supply the neighbours.
     """
     fx, fy = offset[:, 0, None, None], offset[:, 1, None, None]
-    left, mid, right = window[:, :, :-2], window[:, :, 1:-1], window[:, :, 2:]
-    rows = mid + np.where(fx >= 0, fx * (right - mid), -fx * (left - mid))
-    up, mid, down = rows[:, :-2], rows[:, 1:-1], rows[:, 2:]
-    return mid + np.where(fy >= 0, fy * (down - mid), -fy * (up - mid))
+    rows = _towards(window[:, :, 1:-1], window[:, :, 2:], window[:, :, :-2], fx)
+    return _towards(rows[:, 1:-1], rows[:, 2:], rows[:, :-2], fy)
 
 
 def refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str = "ssd") -> np.ndarray:
     """(P, 2) sub-pixel z_k: the continuous minimum of eq. (6) within +-0.5 px of the integer minimum ``start``.
 
-    Gauss-Newton on r(z) = sum_y [T(y) - I_k(z + y)]^2 with I_k bilinear (border
-    replicated) and its gradient by central differences, ``_REFINE_STEPS`` steps,
-    each clamped so that z stays within the integer minimum's cell. The normal
+    start: (P, 2) integer-valued positions (px). Gauss-Newton on r(z) = sum_y [T(y) - I_k(z + y)]^2
+    with I_k bilinear (border replicated) and its gradient by central differences, ``_REFINE_STEPS``
+    steps, each clamped so that z stays within the integer minimum's cell. The normal
     matrix is damped by 1e-3 of its trace so that the step along an edge (no
     information) stays small. Other ``cost``: that of :func:`matching_cost`, the
     frame patch given the template's mean (and contrast) at each step (held
     fixed within a step).
     """
     t = templates.shape[1]
-    window = extract_templates(gray, start, t + 4).astype(np.float64)  # I_k at start + [-t//2 - 2, t//2 + 2]^2
+    # I_k at start + [-t//2 - 2, t//2 + 2]^2: frame pixels (start is integer), clamped into the frame
+    window = _windows(gray, start.astype(np.intp), t // 2 + 2).astype(np.float64)
     reference = templates.astype(np.float64)
     if cost != "ssd":
         reference = reference - reference.mean(axis=(1, 2), keepdims=True)
         energy = (reference * reference).sum(axis=(1, 2))
     offset = np.zeros(start.shape)
-    for _ in range(_REFINE_STEPS):
-        moved = _shift(window, offset)  # I_k at z + [-t//2 - 1, t//2 + 1]^2
+    for step in range(_REFINE_STEPS):
+        # I_k at z + [-t//2 - 1, t//2 + 1]^2; at the first step z = start, the window's inner pixels
+        moved = _shift(window, offset) if step else window[:, 1:-1, 1:-1].copy()
         if cost != "ssd":
-            inner = moved[:, 1:-1, 1:-1]
-            centred = inner - inner.mean(axis=(1, 2), keepdims=True)
-            spread = (centred * centred).sum(axis=(1, 2))
-            gain = np.sqrt(energy / np.where(spread > 0, spread, np.inf))[:, None, None] if cost == "normalised" else 1.0
-            moved = (moved - inner.mean(axis=(1, 2), keepdims=True)) * gain
+            moved -= moved[:, 1:-1, 1:-1].mean(axis=(1, 2), keepdims=True)
+            if cost == "normalised":
+                centred = moved[:, 1:-1, 1:-1]
+                spread = (centred * centred).sum(axis=(1, 2))
+                moved *= np.sqrt(energy / np.where(spread > 0, spread, np.inf))[:, None, None]
         gx = (moved[:, 1:-1, 2:] - moved[:, 1:-1, :-2]) / 2.0
         gy = (moved[:, 2:, 1:-1] - moved[:, :-2, 1:-1]) / 2.0
         error = reference - moved[:, 1:-1, 1:-1]
