@@ -82,11 +82,21 @@ def test_a_run_imports_only_the_stages_it_uses(tmp_path, tiny_clip, method, othe
     assert not NEVER_FOR_ONE_INPUT & loaded
 
 
+#: The packages of the stages' implementations (and their interfaces).
+STAGE_PACKAGES = tuple(f"condtrack_cli.{package}." for package in ("frames", "detect", "motion", "measure", "filters"))
+
+
 def test_listing_the_stages_imports_none_of_them():
     loaded = imported_by("stages")
     assert not [name for name in HEAVY if name in loaded]
-    stage_packages = tuple(f"condtrack_cli.{package}" for package in ("frames", "detect", "motion", "measure", "filters", "io"))
-    assert not [name for name in loaded if name.startswith(stage_packages)]
+    assert not [name for name in loaded if name.startswith(STAGE_PACKAGES + ("condtrack_cli.io.",))]
+
+
+def test_reading_a_track_file_imports_no_stage(tmp_path, tiny_clip):
+    imported_by("track", str(tiny_clip), "-p", str(tiny_clip / "queries.csv"), "-o", str(tmp_path / "out.h5"), "-q")
+    loaded = imported_by("info", str(tmp_path / "out.h5"))
+    assert "h5py" in loaded and "cv2" not in loaded
+    assert not [name for name in loaded if name.startswith(STAGE_PACKAGES)]
 
 
 def test_the_lazy_help_lists_what_the_commands_say():
