@@ -1,11 +1,18 @@
 """Stage name -> factory and settings model, per kind of stage.
 
-A stage registers itself with :func:`register`; the YAML config names the
-implementation of each stage (``name:``) and the registry validates its
-parameters with the stage's pydantic settings model. Third-party packages add
-stages through the entry-point group ``condtrack.stages``: each entry point
-names a module (imported, so that its ``register`` calls run) or a callable
-(called with no argument).
+The YAML config names the implementation of each stage (``name:``) and the
+registry validates its parameters with the stage's pydantic settings model.
+
+The built-in stages are the rows of :data:`BUILTINS`: each names its settings
+model and its factory as ``"module:attribute"``, imported on first use
+(:attr:`StageSpec.settings`, :attr:`StageSpec.factory`). A run thus imports the
+implementations it uses and no other: the config validates every filter's
+settings, so the filters' models live apart from the filters
+(``filters/settings.py``); the other kinds validate only the chosen stage's.
+
+Third-party packages add stages through the entry-point group
+``condtrack.stages``: each entry point names a module (imported, so that its
+:func:`register` calls run) or a callable (called with no argument).
 """
 
 from __future__ import annotations
@@ -24,29 +31,72 @@ KINDS = ("frames", "detect", "motion", "measure", "filter", "output")
 
 ENTRY_POINT_GROUP = "condtrack.stages"
 
-#: Modules of this package that register the built-in stages.
-_BUILTIN_MODULES = (
-    "condtrack_cli.frames.readers",
-    "condtrack_cli.detect.shi_tomasi",
-    "condtrack_cli.motion",
-    "condtrack_cli.measure",
-    "condtrack_cli.filters",
-    "condtrack_cli.io.write",
+#: The built-in stages: kind, name, settings model, factory (each ``"module:attribute"``), summary.
+BUILTINS = (
+    ("frames", "auto", "condtrack_cli.frames.readers:FrameSettings", "condtrack_cli.frames.readers:open_frames",
+     "a folder of images or a video file, chosen by the path"),
+    ("detect", "shi_tomasi", "condtrack_cli.detect.shi_tomasi:ShiTomasiSettings",
+     "condtrack_cli.detect.shi_tomasi:detect_points", "Shi-Tomasi corners that pass the trackability test"),
+    ("motion", "dis", "condtrack_cli.motion.dense:DisMotionSettings", "condtrack_cli.motion.dense:make_dis_motion",
+     "one dense DIS field per frame pair: local motion, its spread, the global fit"),
+    ("motion", "robust", "condtrack_cli.motion.robust:RobustMotionSettings",
+     "condtrack_cli.motion.local:make_robust_motion", "robust parametric motion, coarse to fine with IRLS"),
+    ("motion", "regression", "condtrack_cli.motion.regression:RegressionSettings",
+     "condtrack_cli.motion.regression:make_regression_motion",
+     "the paper's: robust global fit, and a robust regression on the window around each position asked (slow)"),
+    ("measure", "ssd", "condtrack_cli.measure.response:SSDSettings", "condtrack_cli.measure.ssd:make_ssd",
+     "SSD matching with R_k from the correlation surface"),
+    ("filter", "stk", "condtrack_cli.filters.settings:STKSettings", "condtrack_cli.filters.stk:make_stk",
+     "Shi-Tomasi-Kanade baseline (OpenCV pyramidal Lucas-Kanade, forward-backward check)"),
+    ("filter", "mdr", "condtrack_cli.filters.settings:MDRSettings", "condtrack_cli.filters.clf:make_mdr",
+     "MDR baseline: the robust motion alone (global or local), no measurement"),
+    ("filter", "clf", "condtrack_cli.filters.settings:CLFSettings", "condtrack_cli.filters.clf:make_clf",
+     "conditional linear filter (paper §3, Fig. 1): global motion + SSD measurement"),
+    ("filter", "cnlf", "condtrack_cli.filters.settings:CNLFSettings", "condtrack_cli.filters.cnlf:make_cnlf",
+     "conditional nonlinear filter (paper §4, Fig. 2): particles, local motion, optimal proposal"),
+    ("filter", "auto", "condtrack_cli.filters.settings:AutoSettings", "condtrack_cli.filters.auto:make_auto",
+     "each point to the CLF or the CNLF by which motion its measurements follow (paper §5.3, revised)"),
+    ("output", "csv", "condtrack_cli.io.interface:OutputSettings", "condtrack_cli.io.write:write_csv",
+     "long CSV, one row per point per frame"),
+    ("output", "hdf5", "condtrack_cli.io.interface:OutputSettings", "condtrack_cli.io.write:write_hdf5",
+     "self-describing HDF5 with measurements and metadata"),
 )
+
+
+def _resolve(target):
+    """``target`` itself, or the attribute a ``"module:attribute"`` string names (its module imported)."""
+    if not isinstance(target, str):
+        return target
+    module, _, attribute = target.partition(":")
+    return getattr(import_module(module), attribute)
 
 
 @dataclass(frozen=True)
 class StageSpec:
-    """A registered stage: ``factory(settings, **context)`` builds it."""
+    """A registered stage: ``factory(settings, **context)`` builds it.
+
+    ``settings_target`` and ``factory_target`` are the objects, or (a built-in's)
+    ``"module:attribute"`` strings that :attr:`settings` and :attr:`factory` import.
+    """
 
     kind: str
     name: str
-    factory: Callable
-    settings: type[BaseModel]
+    settings_target: type[BaseModel] | str
+    factory_target: Callable | str
     summary: str
 
+    @property
+    def factory(self) -> Callable:
+        return _resolve(self.factory_target)
 
-_STAGES: dict[str, dict[str, StageSpec]] = {kind: {} for kind in KINDS}
+    @property
+    def settings(self) -> type[BaseModel]:
+        return _resolve(self.settings_target)
+
+
+_STAGES: dict[str, dict[str, StageSpec]] = {
+    kind: {row[1]: StageSpec(*row) for row in BUILTINS if row[0] == kind} for kind in KINDS
+}
 _loaded = False
 
 
@@ -57,20 +107,18 @@ def register(kind: str, name: str, settings: type[BaseModel], summary: str = "")
 
     def decorate(factory: Callable) -> Callable:
         first_doc_line = ((factory.__doc__ or "").strip().splitlines() or [""])[0]
-        _STAGES[kind][name] = StageSpec(kind, name, factory, settings, summary or first_doc_line)
+        _STAGES[kind][name] = StageSpec(kind, name, settings, factory, summary or first_doc_line)
         return factory
 
     return decorate
 
 
 def load_stages() -> None:
-    """Import the built-in stages and the entry points of ``condtrack.stages`` (once)."""
+    """Load the entry points of ``condtrack.stages`` (once); the built-ins are registered already."""
     global _loaded
     if _loaded:
         return
     _loaded = True
-    for module in _BUILTIN_MODULES:
-        import_module(module)
     for entry in metadata.entry_points(group=ENTRY_POINT_GROUP):
         loaded = entry.load()
         if callable(loaded):

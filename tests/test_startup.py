@@ -57,6 +57,48 @@ def test_a_csv_run_imports_neither_hdf5_nor_the_other_commands(tmp_path):
     assert commands & loaded == {"condtrack_cli.cli.track"}
 
 
+@pytest.fixture(scope="module")
+def tiny_clip(tmp_path_factory):
+    """A 96x72, 3-frame synthetic scene with its queries."""
+    from condtrack_cli.frames.synthetic import make_scene, write_scene
+
+    return write_scene(make_scene("camera_motion", seed=0, size=(96, 72), n_frames=3),
+                       tmp_path_factory.mktemp("startup") / "clip")
+
+
+#: What no single-input run imports: the robust local field and the paper's regression (the default motion is
+#: ``dis``) and the batch machinery.
+NEVER_FOR_ONE_INPUT = {"condtrack_cli.motion.local", "condtrack_cli.motion.regression", "condtrack_cli.batch",
+                       "condtrack_cli.batch.dask"}
+
+
+@pytest.mark.parametrize("method, others", [("stk", ("clf", "cnlf", "auto")), ("clf", ("cnlf", "auto", "stk")),
+                                            ("auto", ("stk",))])
+def test_a_run_imports_only_the_stages_it_uses(tmp_path, tiny_clip, method, others):
+    loaded = imported_by("track", str(tiny_clip), "-p", str(tiny_clip / "queries.csv"), "-m", method,
+                         "-o", str(tmp_path / "out.h5"), "-q")
+    assert f"condtrack_cli.filters.{method}" in loaded
+    assert not {f"condtrack_cli.filters.{other}" for other in others} & loaded
+    assert not NEVER_FOR_ONE_INPUT & loaded
+
+
+#: The packages of the stages' implementations (and their interfaces).
+STAGE_PACKAGES = tuple(f"condtrack_cli.{package}." for package in ("frames", "detect", "motion", "measure", "filters"))
+
+
+def test_listing_the_stages_imports_none_of_them():
+    loaded = imported_by("stages")
+    assert not [name for name in HEAVY if name in loaded]
+    assert not [name for name in loaded if name.startswith(STAGE_PACKAGES + ("condtrack_cli.io.",))]
+
+
+def test_reading_a_track_file_imports_no_stage(tmp_path, tiny_clip):
+    imported_by("track", str(tiny_clip), "-p", str(tiny_clip / "queries.csv"), "-o", str(tmp_path / "out.h5"), "-q")
+    loaded = imported_by("info", str(tmp_path / "out.h5"))
+    assert "h5py" in loaded and "cv2" not in loaded
+    assert not [name for name in loaded if name.startswith(STAGE_PACKAGES)]
+
+
 def test_the_lazy_help_lists_what_the_commands_say():
     eager = click.Group(cli.name, help=cli.help, params=cli.params, context_settings=cli.context_settings)
     for name in COMMANDS:

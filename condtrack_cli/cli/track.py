@@ -73,7 +73,6 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     gives each input's status, and the exit code is 1 if any input failed.
     OUT_DIR/manifest.jsonl gets one line per input as it ends.
     """
-    from condtrack_cli.batch import run_batch
     from condtrack_cli.run import track_input
 
     show_warnings(not quiet)
@@ -105,6 +104,8 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         if not quiet:
             click.echo(summary.line(config.method), err=True)
         return
+    from condtrack_cli.batch import run_batch  # here only: one input does not import the batch machinery
+
     run_batch(inputs, config, queries_path, out_dir, batch_format, seed, jobs, quiet, threads=threads, **batch)
 
 

@@ -1,7 +1,8 @@
 """Contract of a ``detect`` stage: the first frame in, the points to track out.
 
 A detector is registered with ``register("detect", name, SettingsModel)`` on the
-function itself, called ``detector(settings, gray) -> xy``:
+function itself (a built-in one is a row of ``registry.BUILTINS`` instead), called
+``detector(settings, gray) -> xy``:
 
 - gray: (H, W) float32 grey levels in [0, 255] (``Frame.gray`` of the first frame);
 - xy: (M, 2) float64 positions in px, x right, y down, (0, 0) the centre of the

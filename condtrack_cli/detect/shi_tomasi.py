@@ -18,7 +18,6 @@ import cv2
 import numpy as np
 from pydantic import Field
 
-from condtrack_cli.registry import register
 from condtrack_cli.settings import StageSettings
 
 
@@ -94,7 +93,6 @@ def trackable(gray: np.ndarray, xy: np.ndarray, block: int, floor: float) -> np.
     return scores_at(gray, xy, block) > floor
 
 
-@register("detect", "shi_tomasi", ShiTomasiSettings, "Shi-Tomasi corners that pass the trackability test")
 def detect_points(settings: ShiTomasiSettings, gray: np.ndarray) -> np.ndarray:
     """(M, 2) float64 corner positions on a (H, W) float32 frame, best first."""
     height, width = gray.shape

@@ -1,3 +1,4 @@
-"""The filters: STK and MDR baselines, the conditional linear (CLF) and nonlinear (CNLF) filters, and ``auto``."""
+"""The filters: STK and MDR baselines, the conditional linear (CLF) and nonlinear (CNLF) filters, and ``auto``.
 
-from condtrack_cli.filters import auto, clf, cnlf, stk  # noqa: F401  (register the stages)
+Imports nothing: a run imports the stages it uses and no other (``registry.py``).
+"""

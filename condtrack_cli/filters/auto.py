@@ -116,39 +116,21 @@ import dataclasses
 from typing import Mapping
 
 import numpy as np
-from pydantic import Field
 
 from condtrack_cli.filters.base import Tracker
 from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.calibration import ErrorModel
-from condtrack_cli.filters.clf import CLFSettings, CLFTracker, linear_dynamics
-from condtrack_cli.filters.cnlf import CNLFSettings, CNLFTracker, departs, inverse2
+from condtrack_cli.filters.clf import CLFTracker, linear_dynamics
+from condtrack_cli.filters.cnlf import CNLFTracker, departs, inverse2
 from condtrack_cli.filters.reference import ReferenceMatcher
+from condtrack_cli.filters.settings import AutoSettings, CLFSettings, CNLFSettings
 from condtrack_cli.frame_reports import FrameReports
 from condtrack_cli.measure.interface import Measurer
 from condtrack_cli.motion.interface import FrameMotion
 from condtrack_cli.motion.state_noise import StateNoise
-from condtrack_cli.registry import method_code, register
+from condtrack_cli.registry import method_code
 from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tracks
-
-
-class AutoSettings(StageSettings):
-    filter_sections = ("clf", "cnlf")
-    integration_frames: int = Field(3, ge=1, description="frames over which a point's evidence is averaged")
-    evidence_margin: float = Field(
-        1.0, ge=0, description="change filter when the averaged evidence passes +- this (half squared Mahalanobis units)"
-    )
-    lost_evidence: float = Field(
-        0.5, ge=0,
-        description="a point not found keeps the local motion while the mean evidence of its measurements is above this",
-    )
-    occluder_jump: float | None = Field(
-        1.5, gt=0,
-        description="rule 5: a point found whose local step departs from its last measured step by more than this "
-                    "many px (and that step's size), while the dominant step does not, is moved by the dominant motion "
-                    "and reported not visible (null: off)",
-    )
 
 
 def closer_to_local(z: np.ndarray, dominant: np.ndarray, local: np.ndarray, spread: np.ndarray) -> np.ndarray:
@@ -379,8 +361,6 @@ class AutoTracker(Tracker):
         return dataclasses.replace(tracks, xy=self.cnlf.path_means(tracks.xy), extras=extras)
 
 
-@register("filter", "auto", AutoSettings,
-          "each point to the CLF or the CNLF by which motion its measurements follow (paper §5.3, revised)")
 def make_auto(settings: AutoSettings, *, queries: Queries, info: SequenceInfo, rng: np.random.Generator,
               measure: Measurer, gamma: float, state_noise: StateNoise, smooth: bool, store_particles: bool,
               store_segmentation: bool, filter_settings: Mapping[str, StageSettings], aperture: Aperture | None = None,

@@ -36,25 +36,21 @@ and :meth:`CLFTracker.smooth` runs the RTS smoother over them (``smoother.py``).
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal
 
 import numpy as np
-from pydantic import Field
 
 from condtrack_cli.filters import kalman
 from condtrack_cli.filters.base import Tracker
 from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.calibration import ErrorModel
-from condtrack_cli.filters.reference import (
-    GatedMeasurement, InitialStateSettings, MeasuredFilterSettings, ReferenceMatcher,
-)
+from condtrack_cli.filters.reference import GatedMeasurement, ReferenceMatcher
+from condtrack_cli.filters.settings import CLFSettings, MDRSettings
 from condtrack_cli.filters.smoother import TransitionLog, error_excess, rts
 from condtrack_cli.measure.interface import Measurer
 from condtrack_cli.motion.interface import FrameMotion
 from condtrack_cli.motion.field import LocalField
 from condtrack_cli.motion.model import displacement, jacobian
 from condtrack_cli.motion.state_noise import StateNoise
-from condtrack_cli.registry import register
 from condtrack_cli.types import Frame, Queries, SequenceInfo, Tracks
 
 
@@ -76,30 +72,6 @@ def local_dynamics(field: LocalField, xy: np.ndarray) -> tuple[np.ndarray, np.nd
     A = np.eye(2) + np.stack([(u[:, 0] - u[:, 1]) / (2 * h), (u[:, 2] - u[:, 3]) / (2 * h)], axis=2)
     b = xy + field.displacement(xy) - np.einsum("nij,nj->ni", A, xy)
     return A, b, field.noise(xy)
-
-
-class CLFSettings(MeasuredFilterSettings):
-    """The CLF's settings: those of every filter that measures a reference patch, and its dynamics."""
-
-    dynamics: Literal["select", "local", "global"] = Field(
-        "select",
-        description="motion predicting the gate: global (paper's CLF), local (window around the point) or select (per point)",
-    )
-    select_margin: float = Field(
-        0.5, ge=0, description="select: the local motion predicts a point while it misses the measurement by this much less (px)"
-    )
-    select_frames: int = Field(
-        2, ge=1, description="select: consecutive found frames the local motion must win before a point switches to it"
-    )
-
-
-class MDRSettings(InitialStateSettings):
-    """MDR's settings: the initial position std and which motion moves the points."""
-
-    dynamics: Literal["global", "local"] = Field(
-        "global",
-        description="motion moving the points: global (the dominant fit) or local (the window around each point, the CNLF's; paper §6: MDR is the filter's own dynamics)",
-    )
 
 
 class MDRTracker(Tracker):
@@ -249,13 +221,11 @@ class CLFTracker(MDRTracker):
         return dataclasses.replace(tracks, xy=xy, cov=cov + error_excess(self.transitions.stacked("excess", n_frames)))
 
 
-@register("filter", "mdr", MDRSettings, "MDR baseline: the robust motion alone (global or local), no measurement")
 def make_mdr(settings: MDRSettings, *, queries: Queries, info: SequenceInfo, state_noise: StateNoise,
              **_context) -> MDRTracker:
     return MDRTracker(settings, queries, info, state_noise)
 
 
-@register("filter", "clf", CLFSettings, "conditional linear filter (paper §3, Fig. 1): global motion + SSD measurement")
 def make_clf(settings: CLFSettings, *, queries: Queries, info: SequenceInfo, measure: Measurer, gamma: float,
              state_noise: StateNoise, smooth: bool, aperture: Aperture | None = None, **_context) -> CLFTracker:
     reference = ReferenceMatcher(measure, settings, len(queries), gamma)

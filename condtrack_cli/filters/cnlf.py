@@ -39,41 +39,22 @@ replaces the estimate by the FFBSm smoother's (``smoother.py``).
 from __future__ import annotations
 
 import dataclasses
-from typing import Literal
 
 import numpy as np
-from pydantic import Field
 
 from condtrack_cli.filters.base import Tracker
 from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.calibration import ErrorModel
 from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, matvec2, sample_gauss2
-from condtrack_cli.filters.reference import MeasuredFilterSettings, ReferenceMatcher
+from condtrack_cli.filters.reference import ReferenceMatcher
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise, sum_over_particles
+from condtrack_cli.filters.settings import CNLFSettings
 from condtrack_cli.filters.smoother import TransitionLog, error_excess, particle_smoother, weighted_moments
 from condtrack_cli.frame_reports import FrameReports
 from condtrack_cli.measure.interface import Measurer
 from condtrack_cli.motion.interface import FrameMotion
 from condtrack_cli.motion.model import displacement
-from condtrack_cli.registry import register
 from condtrack_cli.types import FrameEstimate, Frame, Queries, SequenceInfo, Tracks
-
-
-class CNLFSettings(MeasuredFilterSettings):
-    particles: int = Field(100, ge=1, le=10000, description="particles per point (the paper's N = 100)")
-    ess_fraction: float = Field(0.5, gt=0, le=1, description="resample when the effective sample size falls below this x N")
-    resampling: Literal["systematic", "residual"] = Field("systematic", description="resampling scheme")
-    layer_jump: float | None = Field(
-        None, gt=0,
-        description="a point not found, whose local motion departs from its own layer's by more than this many px "
-                    "(and that motion's size), is moved by its layer's motion, not by what now covers it "
-                    "(null, the default: always the local motion, the paper's; docs/departures.md)",
-    )
-    path_lag: int | None = Field(
-        10, ge=0,
-        description="frames of particle paths kept: a frame's path estimate uses the weights this many frames later "
-                    "(or the clip's end); null keeps them all (the paper's estimate; memory grows with the clip)",
-    )
 
 
 def departs(step: np.ndarray, layer: np.ndarray, jump: float) -> np.ndarray:
@@ -379,7 +360,6 @@ class CNLFTracker(Tracker):
         return xy
 
 
-@register("filter", "cnlf", CNLFSettings, "conditional nonlinear filter (paper §4, Fig. 2): particles, local motion, optimal proposal")
 def make_cnlf(settings: CNLFSettings, *, queries: Queries, info: SequenceInfo, rng: np.random.Generator,
               measure: Measurer, gamma: float, smooth: bool, store_particles: bool, aperture: Aperture | None = None,
               **_context) -> CNLFTracker:

@@ -6,7 +6,8 @@ keyword arguments (:class:`FilterFactory`; a factory takes the ones it needs and
 ``**_context`` for the others). The pipeline then calls, for each frame k of the
 pass, ``tracker.step(frame, prev, motion)`` with the motion of k-1 -> k that the
 tracker asked for (``needs_motion``, ``needs_local_motion``), and at the end
-``finish`` (and ``smooth`` with ``filter.smooth``).
+``finish`` (and ``smooth`` with ``filter.smooth``). The built-in filters are rows of
+``registry.BUILTINS`` instead.
 
 Positions are px (x right, y down, (0, 0) the centre of the top-left pixel),
 covariances px^2; P points, F frames of the pass.

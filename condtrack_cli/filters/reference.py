@@ -13,33 +13,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pydantic import Field
 
 from condtrack_cli.filters import kalman
 from condtrack_cli.measure.interface import Measurer
-from condtrack_cli.settings import StageSettings
+from condtrack_cli.filters.settings import MeasuredFilterSettings
 from condtrack_cli.types import Frame
-
-
-class InitialStateSettings(StageSettings):
-    """Settings of every filter that carries a covariance from the query on (MDR, CLF, CNLF)."""
-
-    initial_std: float = Field(0.5, gt=0, description="std of the position at the query frame (px)")
-
-
-class MeasuredFilterSettings(InitialStateSettings):
-    """Settings shared by the filters that measure a reference patch (CLF, CNLF)."""
-
-    nominal_r: float = Field(1.0, gt=0, description="variance sizing the search before a point has a finite R_k (px^2)")
-    gate_r_min: float = Field(0.1, gt=0, description="least variance of the R sizing the search (px^2)")
-    gate_r_max: float = Field(25.0, gt=0, description="largest variance of the R sizing the search (px^2)")
-    reference_update: bool = Field(True, description="refresh a point's reference patch when it no longer matches well")
-    update_residual: float = Field(
-        4.0, gt=1, description="refresh when the match residual exceeds this many times its noise-only expectation"
-    )
-    update_abruptness: float = Field(
-        0.8, gt=0, le=1, description="no refresh when more than this share of the residual appeared since the last frame"
-    )
 
 
 @dataclass(frozen=True)

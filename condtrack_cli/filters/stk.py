@@ -10,23 +10,11 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-from pydantic import Field
 
 from condtrack_cli.filters.base import Tracker
 from condtrack_cli.motion.interface import FrameMotion
-from condtrack_cli.registry import register
-from condtrack_cli.settings import StageSettings
+from condtrack_cli.filters.settings import STKSettings
 from condtrack_cli.types import Frame, Queries, SequenceInfo
-
-
-class STKSettings(StageSettings):
-    frame_windows = ("win_size",)
-    win_size: int = Field(21, ge=3, description="side of the Lucas-Kanade window (px)")
-    levels: int = Field(4, ge=1, le=8, description="pyramid levels (OpenCV maxLevel = levels - 1; 4: OpenCV maxLevel 3)")
-    max_iterations: int = Field(30, ge=1, description="iterations per level")
-    epsilon: float = Field(0.01, gt=0, description="stop when an iteration moves the point less than this (px)")
-    fb_threshold: float = Field(1.0, gt=0, description="forward-backward distance above which a point is not visible (px)")
-    min_eig_threshold: float = Field(1e-4, ge=0, description="OpenCV minEigThreshold: LK fails below this")
 
 
 def lucas_kanade(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray, settings: STKSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -58,6 +46,5 @@ class STKTracker(Tracker):
         self.visible[index] = ok
 
 
-@register("filter", "stk", STKSettings, "Shi-Tomasi-Kanade baseline (OpenCV pyramidal Lucas-Kanade, forward-backward check)")
 def make_stk(settings: STKSettings, queries: Queries, info: SequenceInfo, **_context) -> STKTracker:
     return STKTracker(settings, queries, info)

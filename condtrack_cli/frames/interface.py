@@ -6,6 +6,7 @@ factory called ``factory(settings, path) -> FrameSource``; it raises
 be read. Frames are in the package's pixel convention (``condtrack_cli/types.py``).
 The pipeline iterates a source (``iter``, ``reversed_from``) on a reader thread,
 one frame ahead of the tracking (``prefetch.py``); its errors reach the caller unchanged.
+The built-in stages are rows of ``registry.BUILTINS`` instead.
 """
 
 from __future__ import annotations

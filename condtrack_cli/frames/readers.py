@@ -23,7 +23,6 @@ import numpy as np
 from pydantic import Field
 
 from condtrack_cli.errors import CondtrackError, MissingInput, warn
-from condtrack_cli.registry import register
 from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import SequenceInfo
 
@@ -160,7 +159,6 @@ class VideoSource:
             end = begin
 
 
-@register("frames", "auto", FrameSettings, "a folder of images or a video file, chosen by the path")
 def open_frames(settings: FrameSettings, path: str | Path) -> FolderSource | VideoSource:
     """Open ``path`` as a frame source; CondtrackError naming the path otherwise."""
     path = Path(path)

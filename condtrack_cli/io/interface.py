@@ -4,6 +4,7 @@ A writer is registered with ``register("output", format_name, OutputSettings)``
 (the format name is the one ``io/formats.py`` gives the file's suffix) on the
 function itself, called ``writer(tracks, path, info, meta, settings)``; it writes
 ``path`` (a temporary name that ``write_tracks`` renames when the writer returns).
+The built-in writers are rows of ``registry.BUILTINS`` instead.
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ from condtrack_cli.errors import write_error
 from condtrack_cli.io.atomic import atomic_path
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.interface import OutputSettings
-from condtrack_cli.registry import get, method_codes, register
+from condtrack_cli.registry import get, method_codes
 from condtrack_cli.types import SequenceInfo, Tracks
 
 if TYPE_CHECKING:
@@ -65,7 +65,6 @@ def csv_text(tracks: Tracks) -> str:
     return header + "\n" + "\n".join(rows.tolist()) + "\n"
 
 
-@register("output", "csv", OutputSettings, "long CSV, one row per point per frame")
 def write_csv(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
     path.write_bytes(csv_text(tracks).encode("ascii"))
 
@@ -80,7 +79,6 @@ def _dataset(group: h5py.Group, name: str, data: np.ndarray, settings: OutputSet
         dataset.attrs[key] = value
 
 
-@register("output", "hdf5", OutputSettings, "self-describing HDF5 with measurements and metadata")
 def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
     """Write the self-describing HDF5 file (docs/schema.md)."""
     import h5py  # here only: CSV runs do not pay its import

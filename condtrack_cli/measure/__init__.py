@@ -1,3 +1,4 @@
-"""Measurement: SSD matching in the validation gate and R_k from the correlation surface (§5.2)."""
+"""Measurement: SSD matching in the validation gate and R_k from the correlation surface (§5.2).
 
-from condtrack_cli.measure import ssd  # noqa: F401  (registers the stage)
+Imports nothing: a run imports the stages it uses and no other (``registry.py``).
+"""

@@ -5,6 +5,7 @@ factory called ``factory(settings) -> Measurer``. The filters keep the reference
 patches (``filters/reference.py``) and ask the measurer to take, compare and
 match them. Images are (H, W) float32 grey levels (``Frame.gray``); positions px
 in the package's pixel convention; covariances px^2.
+The built-in stages are rows of ``registry.BUILTINS`` instead.
 """
 
 from __future__ import annotations

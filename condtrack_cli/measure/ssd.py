@@ -64,7 +64,6 @@ from condtrack_cli.measure.interface import Measurement
 from condtrack_cli.measure.noise import estimate_noise_sigma, noise_threshold
 from condtrack_cli.measure.response import SSDSettings, infinite_covariance, response
 from condtrack_cli.measure.surfaces import FrameSums, extract_templates, frame_sums, matching_cost, refine, ssd_surfaces
-from condtrack_cli.registry import register
 
 #: The 8 neighbours (row, column offsets) of a cell.
 _NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
@@ -253,7 +252,6 @@ class SSDMeasure:
         return measure(gray, templates, predicted, gate_cov, self.settings, sigma, self._sums[1])
 
 
-@register("measure", "ssd", SSDSettings, "SSD matching with R_k from the correlation surface")
 def make_ssd(settings: SSDSettings, **_context) -> SSDMeasure:
     """SSD matching in the gate with R_k from the correlation surface (paper §5.2)."""
     return SSDMeasure(settings)

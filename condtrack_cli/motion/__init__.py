@@ -1,3 +1,4 @@
-"""Robust parametric motion estimation (paper §5.1)."""
+"""Robust parametric motion estimation (paper §5.1).
 
-from condtrack_cli.motion import stage  # noqa: F401  (registers the stage)
+Imports nothing: a run imports the stages it uses and no other (``registry.py``).
+"""

@@ -89,6 +89,7 @@ import numpy as np
 from pydantic import Field
 
 from condtrack_cli.motion.field import LocalField
+from condtrack_cli.motion.interface import MotionStages
 from condtrack_cli.motion.model import MotionFit, motion_basis
 from condtrack_cli.motion.pyramid import frame_pyramid
 from condtrack_cli.motion.robust import (
@@ -99,6 +100,7 @@ from condtrack_cli.motion.robust import (
     frame_normalisation,
     robust_weights,
 )
+from condtrack_cli.motion.state_noise import StateNoise
 from condtrack_cli.settings import StageSettings
 from condtrack_cli.types import Frame
 
@@ -393,3 +395,13 @@ class DisLocalMotion:
         spread = window_spread(flow, self.settings.local_window, self._scratch)
         spread.flags.writeable = False
         return LocalField(flow, spread, 0.0, 1.0, self.settings.q_floor)
+
+
+def make_dis_motion(settings: DisMotionSettings, **_context) -> MotionStages:
+    """Dense inverse search: the field shared by the global fit and the local motion; Q_k (``state_noise.py``)."""
+    flow = DenseFlow(settings)
+    return MotionStages(
+        global_motion=DisGlobalMotion(settings, flow),
+        local_motion=DisLocalMotion(settings, flow),
+        state_noise=StateNoise(settings.q_floor, settings.q_misfit, settings.misfit_window),
+    )

@@ -7,6 +7,7 @@ with a point started before k, the global estimator, then the local one on the
 global fit when the filter needs it too (``Tracker.needs_local_motion``), and
 hands the filter the result as a :class:`FrameMotion`. Positions are px of frame k-1 in the package's
 pixel convention (x right, y down, (0, 0) the centre of the top-left pixel).
+The built-in stages are rows of ``registry.BUILTINS`` instead.
 """
 
 from __future__ import annotations

@@ -23,11 +23,13 @@ from __future__ import annotations
 import numpy as np
 from pydantic import Field
 
+from condtrack_cli.motion.interface import MotionStages
 from condtrack_cli.motion.local.exact import window_regression
 from condtrack_cli.motion.local.windows import _global_flow, local_levels
 from condtrack_cli.motion.model import MotionFit
 from condtrack_cli.motion.pyramid import frame_pyramid
-from condtrack_cli.motion.robust import RobustMotionSettings
+from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings
+from condtrack_cli.motion.state_noise import StateNoise
 from condtrack_cli.types import Frame, Pyramid
 
 #: Positions solved at once (memory ~ 40 side^2 float64 a position: ~84 MB for 32 px windows).
@@ -90,3 +92,12 @@ class RegressionMotion:
         """The per-position regression from ``prev`` to ``cur`` around the global ``fit`` of the same pair."""
         levels = local_levels(prev.image.shape, self.settings.levels)
         return RegressionField(frame_pyramid(prev, levels), frame_pyramid(cur, levels), fit, self.settings)
+
+
+def make_regression_motion(settings: RegressionSettings, **_context) -> MotionStages:
+    """Robust global fit (``robust.py``); the local motion regressed per position (``RegressionMotion``); Q_k."""
+    return MotionStages(
+        global_motion=GlobalMotion(settings),
+        local_motion=RegressionMotion(settings),
+        state_noise=StateNoise(settings.q_floor, settings.q_misfit, settings.misfit_window),
+    )

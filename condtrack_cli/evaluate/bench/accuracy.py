@@ -81,11 +81,10 @@ def support_table(folder: Path, window: int = 32) -> list[str]:
     stage's (the default) at their default settings.
     """
     from condtrack_cli.frames.readers import FrameSettings, open_frames
-    from condtrack_cli.motion.dense import DisMotionSettings
+    from condtrack_cli.motion.dense import DisMotionSettings, make_dis_motion
     from condtrack_cli.motion.local import LocalMotion
     from condtrack_cli.motion.model import displacement
     from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings
-    from condtrack_cli.motion.stage import make_dis_motion
     from condtrack_cli.motion.state_noise import neighbourhood_support
     from condtrack_cli.types import Frame
 

@@ -105,12 +105,14 @@ from __future__ import annotations
 import numpy as np
 
 from condtrack_cli.motion.field import LocalField
+from condtrack_cli.motion.interface import MotionStages
 from condtrack_cli.motion.local.level import _choose, _Level, _level_pass
 from condtrack_cli.motion.local.start import _searched_start
 from condtrack_cli.motion.local.windows import _global_flow, _interpolate, local_levels, passes
 from condtrack_cli.motion.model import MotionFit, displacement
 from condtrack_cli.motion.pyramid import frame_pyramid
-from condtrack_cli.motion.robust import RobustMotionSettings
+from condtrack_cli.motion.robust import GlobalMotion, RobustMotionSettings
+from condtrack_cli.motion.state_noise import StateNoise
 from condtrack_cli.types import Frame, Pyramid
 
 
@@ -159,3 +161,12 @@ class LocalMotion:
         """The field from ``prev`` to ``cur`` on the global ``fit`` of the same pair; pyramids from ``frame_pyramid``."""
         levels = local_levels(prev.image.shape, self.settings.levels)
         return local_field(frame_pyramid(prev, levels), frame_pyramid(cur, levels), fit, self.settings, self._workspaces)
+
+
+def make_robust_motion(settings: RobustMotionSettings, **_context) -> MotionStages:
+    """Robust parametric motion: global support (``robust.py``), local support (``LocalMotion``), Q_k (``state_noise.py``)."""
+    return MotionStages(
+        global_motion=GlobalMotion(settings),
+        local_motion=LocalMotion(settings),
+        state_noise=StateNoise(settings.q_floor, settings.q_misfit, settings.misfit_window),
+    )

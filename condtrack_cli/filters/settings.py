@@ -1,0 +1,100 @@
+"""The built-in filters' settings models, apart from the filters: the config validates the settings of every
+registered filter, and a run imports only the filter it uses (``registry.py``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field
+
+from condtrack_cli.settings import StageSettings
+
+
+class InitialStateSettings(StageSettings):
+    """Settings of every filter that carries a covariance from the query on (MDR, CLF, CNLF)."""
+
+    initial_std: float = Field(0.5, gt=0, description="std of the position at the query frame (px)")
+
+
+class MeasuredFilterSettings(InitialStateSettings):
+    """Settings shared by the filters that measure a reference patch (CLF, CNLF)."""
+
+    nominal_r: float = Field(1.0, gt=0, description="variance sizing the search before a point has a finite R_k (px^2)")
+    gate_r_min: float = Field(0.1, gt=0, description="least variance of the R sizing the search (px^2)")
+    gate_r_max: float = Field(25.0, gt=0, description="largest variance of the R sizing the search (px^2)")
+    reference_update: bool = Field(True, description="refresh a point's reference patch when it no longer matches well")
+    update_residual: float = Field(
+        4.0, gt=1, description="refresh when the match residual exceeds this many times its noise-only expectation"
+    )
+    update_abruptness: float = Field(
+        0.8, gt=0, le=1, description="no refresh when more than this share of the residual appeared since the last frame"
+    )
+
+
+class STKSettings(StageSettings):
+    frame_windows = ("win_size",)
+    win_size: int = Field(21, ge=3, description="side of the Lucas-Kanade window (px)")
+    levels: int = Field(4, ge=1, le=8, description="pyramid levels (OpenCV maxLevel = levels - 1; 4: OpenCV maxLevel 3)")
+    max_iterations: int = Field(30, ge=1, description="iterations per level")
+    epsilon: float = Field(0.01, gt=0, description="stop when an iteration moves the point less than this (px)")
+    fb_threshold: float = Field(1.0, gt=0, description="forward-backward distance above which a point is not visible (px)")
+    min_eig_threshold: float = Field(1e-4, ge=0, description="OpenCV minEigThreshold: LK fails below this")
+
+
+class CLFSettings(MeasuredFilterSettings):
+    """The CLF's settings: those of every filter that measures a reference patch, and its dynamics."""
+
+    dynamics: Literal["select", "local", "global"] = Field(
+        "select",
+        description="motion predicting the gate: global (paper's CLF), local (window around the point) or select (per point)",
+    )
+    select_margin: float = Field(
+        0.5, ge=0, description="select: the local motion predicts a point while it misses the measurement by this much less (px)"
+    )
+    select_frames: int = Field(
+        2, ge=1, description="select: consecutive found frames the local motion must win before a point switches to it"
+    )
+
+
+class MDRSettings(InitialStateSettings):
+    """MDR's settings: the initial position std and which motion moves the points."""
+
+    dynamics: Literal["global", "local"] = Field(
+        "global",
+        description="motion moving the points: global (the dominant fit) or local (the window around each point, the CNLF's; paper §6: MDR is the filter's own dynamics)",
+    )
+
+
+class CNLFSettings(MeasuredFilterSettings):
+    particles: int = Field(100, ge=1, le=10000, description="particles per point (the paper's N = 100)")
+    ess_fraction: float = Field(0.5, gt=0, le=1, description="resample when the effective sample size falls below this x N")
+    resampling: Literal["systematic", "residual"] = Field("systematic", description="resampling scheme")
+    layer_jump: float | None = Field(
+        None, gt=0,
+        description="a point not found, whose local motion departs from its own layer's by more than this many px "
+                    "(and that motion's size), is moved by its layer's motion, not by what now covers it "
+                    "(null, the default: always the local motion, the paper's; docs/departures.md)",
+    )
+    path_lag: int | None = Field(
+        10, ge=0,
+        description="frames of particle paths kept: a frame's path estimate uses the weights this many frames later "
+                    "(or the clip's end); null keeps them all (the paper's estimate; memory grows with the clip)",
+    )
+
+
+class AutoSettings(StageSettings):
+    filter_sections = ("clf", "cnlf")
+    integration_frames: int = Field(3, ge=1, description="frames over which a point's evidence is averaged")
+    evidence_margin: float = Field(
+        1.0, ge=0, description="change filter when the averaged evidence passes +- this (half squared Mahalanobis units)"
+    )
+    lost_evidence: float = Field(
+        0.5, ge=0,
+        description="a point not found keeps the local motion while the mean evidence of its measurements is above this",
+    )
+    occluder_jump: float | None = Field(
+        1.5, gt=0,
+        description="rule 5: a point found whose local step departs from its last measured step by more than this "
+                    "many px (and that step's size), while the dominant step does not, is moved by the dominant motion "
+                    "and reported not visible (null: off)",
+    )
