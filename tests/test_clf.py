@@ -75,13 +75,14 @@ def test_selected_dynamics_keep_the_better_motion(sample, global_at_least, local
 
 
 class _ScriptedMeasure:
-    """A measurement stage that finds the point at ``found[k]`` (R = 0.5 I) on the frames k it lists, and nothing
-    (R infinite) elsewhere; frame k is read from the grey level of its top-left pixel."""
+    """A measurement stage that finds the point at ``found[k]`` (R = 0.5 I) with residual ``residuals[k]`` (0 where
+    not given) on the frames k it lists, and nothing (R infinite) elsewhere; frame k is read from the grey level
+    of its top-left pixel."""
 
     template_side = 3
 
-    def __init__(self, found: dict[int, tuple[float, float]]):
-        self.found = found
+    def __init__(self, found: dict[int, tuple[float, float]], residuals: dict[int, float] | None = None):
+        self.found, self.residuals = found, residuals or {}
 
     def templates(self, gray, xy):
         return np.zeros((len(xy), 3, 3), np.float32)
@@ -99,7 +100,7 @@ class _ScriptedMeasure:
         seen = k in self.found
         z = np.tile(self.found[k] if seen else (np.nan, np.nan), (n, 1))
         R = np.tile(0.5 * np.eye(2) if seen else np.diag([np.inf, np.inf]), (n, 1, 1))
-        return Measurement(z, R, np.zeros(n), np.full(n, seen))
+        return Measurement(z, R, np.full(n, self.residuals.get(k, 0.0)), np.full(n, seen))
 
 
 def test_a_covered_point_keeps_its_own_layers_state_noise_and_ignores_the_occluders_match():
@@ -143,3 +144,28 @@ def test_a_covered_point_keeps_its_own_layers_state_noise_and_ignores_the_occlud
         clf.step(frames[k], frames[k - 1], motion(0.0))
     assert not clf.visible[0]
     np.testing.assert_allclose(clf.cov[0], sigma_seen + 4 * 0.25 * np.eye(2), atol=1e-9)
+
+
+def test_a_match_far_worse_than_the_points_usual_ones_is_not_used():
+    """Issue 31: a point matched with residuals of 10 grey levels^2 on frames 1-3 whose gate finds, on frame 4, a
+    match at the predicted place with residual 100 (a patch of the occluder now over it: more than
+    ``foreign_residual`` = 6 times its usual residual) is not found there (R = inf); on frame 5 a match with
+    residual 30 (a patch changing, within 6 times) is used again and moves the usual residual by a third of
+    the way. With ``foreign_residual: null`` the frame 4 match is used."""
+    from condtrack_cli.filters.reference import USUAL_WEIGHT, MeasuredFilterSettings, ReferenceMatcher
+    from condtrack_cli.types import Frame
+
+    residuals = {1: 10.0, 2: 10.0, 3: 10.0, 4: 100.0, 5: 30.0}
+    measure = _ScriptedMeasure({k: (50.0, 40.0) for k in residuals}, residuals)
+    frames = [Frame(k, np.full((80, 100), k, np.uint8)) for k in range(6)]
+    predicted, s_pred = np.array([[50.0, 40.0]]), np.eye(2)[None]
+    for foreign, used in ((6.0, [True, True, True, False, True]), (None, [True] * 5)):
+        reference = ReferenceMatcher(measure, MeasuredFilterSettings(foreign_residual=foreign), 1, 9.21)
+        reference.start(np.array([0]), frames[0], predicted)
+        found = [reference.measure_in_gate(np.array([0]), frames[k], predicted, s_pred).valid[0] for k in residuals]
+        assert found == used
+    reference = ReferenceMatcher(measure, MeasuredFilterSettings(foreign_residual=6.0), 1, 9.21)
+    reference.start(np.array([0]), frames[0], predicted)
+    for k in residuals:
+        reference.measure_in_gate(np.array([0]), frames[k], predicted, s_pred)
+    assert reference.usual[0] == pytest.approx(10.0 + USUAL_WEIGHT * (30.0 - 10.0))
