@@ -72,3 +72,100 @@ def test_selected_dynamics_keep_the_better_motion(sample, global_at_least, local
     assert select >= global_ + global_at_least
     if local_at_most is not None:
         assert delta("local") <= global_ + local_at_most
+
+
+class _ScriptedMeasure:
+    """A measurement stage that finds the point at ``found[k]`` (R = 0.5 I) with residual ``residuals[k]`` (0 where
+    not given) on the frames k it lists, and nothing (R infinite) elsewhere; frame k is read from the grey level
+    of its top-left pixel."""
+
+    template_side = 3
+
+    def __init__(self, found: dict[int, tuple[float, float]], residuals: dict[int, float] | None = None):
+        self.found, self.residuals = found, residuals or {}
+
+    def templates(self, gray, xy):
+        return np.zeros((len(xy), 3, 3), np.float32)
+
+    def noise_sigma(self, gray):
+        return 1.0
+
+    def cost(self, templates, patches):
+        return np.zeros(len(templates))
+
+    def measure(self, gray, templates, predicted, gate_cov, sigma):
+        from condtrack_cli.measure.interface import Measurement
+
+        k, n = int(gray[0, 0]), len(predicted)
+        seen = k in self.found
+        z = np.tile(self.found[k] if seen else (np.nan, np.nan), (n, 1))
+        R = np.tile(0.5 * np.eye(2) if seen else np.diag([np.inf, np.inf]), (n, 1, 1))
+        return Measurement(z, R, np.full(n, self.residuals.get(k, 0.0)), np.full(n, seen))
+
+
+def test_a_covered_point_keeps_its_own_layers_state_noise_and_ignores_the_occluders_match():
+    """Issue 31: one point on the background (dominant motion 1 px/frame right, Q_k = 0.25 I where the
+    neighbourhood follows it, + q_misfit (1 - w)^2 = 100 px^2 where it does not), found on frames 1-2, then covered
+    by an occluder that the dominant fit rejects (weights 0) on frames 3-6. Covered, its Sigma grows by its own
+    layer's Q_k, 0.25 px^2 a frame (exactly: the translation's theta_cov is 0), not by the occluder's 100.25; a
+    match the gate finds on frame 3 on the occluder (10 px off), after ``cover``, is not used: the point stays at
+    its prediction, not visible."""
+    from condtrack_cli.filters.calibration import ErrorModel
+    from condtrack_cli.filters.clf import CLFSettings, CLFTracker
+    from condtrack_cli.filters.reference import ReferenceMatcher
+    from condtrack_cli.motion.interface import FrameMotion
+    from condtrack_cli.motion.model import MotionFit
+    from condtrack_cli.motion.state_noise import StateNoise
+    from condtrack_cli.types import Frame, Queries, SequenceInfo
+
+    info = SequenceInfo("test", 100, 80, 7, 0.0)
+    queries = Queries(np.arange(1), np.zeros(1, np.int64), np.array([[50.0, 40.0]]))
+    measure = _ScriptedMeasure({1: (51.0, 40.0), 2: (52.0, 40.0), 3: (63.0, 40.0)})
+    settings = CLFSettings(dynamics="global")
+    clf = CLFTracker(settings, queries, info, StateNoise(0.25, 100.0, 9), ReferenceMatcher(measure, settings, 1, 9.21),
+                     ErrorModel(1, 9.21), smooth=False)
+
+    def motion(weight: float) -> FrameMotion:
+        weights = np.full((80, 100), weight, np.float32)
+        return FrameMotion(MotionFit("translation", np.array([1.0, 0.0]), np.zeros((2, 2)), np.zeros(2), 1.0,
+                                     weights, 1.0))
+
+    frames = [Frame(k, np.full((80, 100), k, np.uint8)) for k in range(7)]
+    clf.step(frames[0], None, None)
+    for k in (1, 2):
+        clf.step(frames[k], frames[k - 1], motion(1.0))
+    assert clf.visible[0]
+    sigma_seen = clf.cov[0].copy()
+    clf.cover(np.array([0]))
+    clf.step(frames[3], frames[2], motion(0.0))
+    assert not clf.visible[0]
+    np.testing.assert_allclose(clf.xy[0], [53.0, 40.0], atol=0.05)  # the prediction, not the occluder's 63
+    for k in (4, 5, 6):
+        clf.step(frames[k], frames[k - 1], motion(0.0))
+    assert not clf.visible[0]
+    np.testing.assert_allclose(clf.cov[0], sigma_seen + 4 * 0.25 * np.eye(2), atol=1e-9)
+
+
+def test_a_match_far_worse_than_the_points_usual_ones_is_not_used():
+    """Issue 31: a point matched with residuals of 10 grey levels^2 on frames 1-3 whose gate finds, on frame 4, a
+    match at the predicted place with residual 100 (a patch of the occluder now over it: more than
+    ``foreign_residual`` = 6 times its usual residual) is not found there (R = inf); on frame 5 a match with
+    residual 30 (a patch changing, within 6 times) is used again and moves the usual residual by a third of
+    the way. With ``foreign_residual: null`` the frame 4 match is used."""
+    from condtrack_cli.filters.reference import USUAL_WEIGHT, MeasuredFilterSettings, ReferenceMatcher
+    from condtrack_cli.types import Frame
+
+    residuals = {1: 10.0, 2: 10.0, 3: 10.0, 4: 100.0, 5: 30.0}
+    measure = _ScriptedMeasure({k: (50.0, 40.0) for k in residuals}, residuals)
+    frames = [Frame(k, np.full((80, 100), k, np.uint8)) for k in range(6)]
+    predicted, s_pred = np.array([[50.0, 40.0]]), np.eye(2)[None]
+    for foreign, used in ((6.0, [True, True, True, False, True]), (None, [True] * 5)):
+        reference = ReferenceMatcher(measure, MeasuredFilterSettings(foreign_residual=foreign), 1, 9.21)
+        reference.start(np.array([0]), frames[0], predicted)
+        found = [reference.measure_in_gate(np.array([0]), frames[k], predicted, s_pred).valid[0] for k in residuals]
+        assert found == used
+    reference = ReferenceMatcher(measure, MeasuredFilterSettings(foreign_residual=6.0), 1, 9.21)
+    reference.start(np.array([0]), frames[0], predicted)
+    for k in residuals:
+        reference.measure_in_gate(np.array([0]), frames[k], predicted, s_pred)
+    assert reference.usual[0] == pytest.approx(10.0 + USUAL_WEIGHT * (30.0 - 10.0))

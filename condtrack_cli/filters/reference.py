@@ -5,7 +5,12 @@ S = S_pred + R_gate, S_pred the predicted covariance of the point (CLF:
 Sigma_{k|k-1}; CNLF: the mixture's second moment) and R_gate the point's last
 finite R_k (the configured nominal one before the first), clamped to
 [gate_r_min, gate_r_max]. A measurement is used (and the point is visible) when
-R_k is finite and z_k lies in the gate nu^T (S_pred + R_k)^-1 nu <= gamma (§3.2).
+R_k is finite and z_k lies in the gate nu^T (S_pred + R_k)^-1 nu <= gamma (§3.2),
+and its residual r_k(z_k) is at most ``foreign_residual`` times the point's usual
+one (issue 31): a match in the gate that fits the reference patch much worse than
+the point's own matches have lies on something covering the point (an occluder
+that the gate overlaps, or that the point's gate was moved onto), and the point is
+covered there (R = inf), whatever the gate's position test says.
 """
 
 from __future__ import annotations
@@ -18,6 +23,10 @@ from condtrack_cli.filters import kalman
 from condtrack_cli.measure.interface import Measurer
 from condtrack_cli.filters.settings import MeasuredFilterSettings
 from condtrack_cli.types import Frame
+
+
+#: Weight of a match's residual in its point's usual residual (``ReferenceMatcher.usual``): about 3 frames' memory.
+USUAL_WEIGHT = 1.0 / 3.0
 
 
 @dataclass(frozen=True)
@@ -42,12 +51,16 @@ class ReferenceMatcher:
         self.templates = np.zeros((n_points, t, t), np.float32)
         self.gate_r = np.repeat(settings.nominal_r * np.eye(2)[None], n_points, axis=0)
         self.noise_sigma: float | None = None
+        #: (P,) each point's usual residual (grey levels^2): the mean of the residuals of its matches used, each
+        #: weighing ``USUAL_WEIGHT`` against the mean before it (NaN before its first match)
+        self.usual = np.full(n_points, np.nan)
 
     def start(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> None:
         """Take the reference patches of points ``index`` at (n, 2) ``xy`` in their query frame."""
         if self.noise_sigma is None:
             self.noise_sigma = self.measure.noise_sigma(frame.gray)
         self.templates[index] = self.measure.templates(frame.gray, xy)
+        self.usual[index] = np.nan
 
     def measure_in_gate(self, index: np.ndarray, frame: Frame, predicted: np.ndarray, s_pred: np.ndarray) -> GatedMeasurement:
         """Match points ``index`` around (n, 2) ``predicted`` with predicted covariance (n, 2, 2) ``s_pred``."""
@@ -56,6 +69,11 @@ class ReferenceMatcher:
         nu = np.where(m.informative[:, None], m.z - predicted, 0.0)
         valid = m.informative & (kalman.mahalanobis2(nu, s_pred + r_used) <= self.gamma)
         s = self.settings
+        if s.foreign_residual is not None:
+            usual = self.usual[index]
+            valid &= ~(m.residual > s.foreign_residual * usual)  # False where there is no usual residual yet
+            self.usual[index[valid]] = np.where(np.isnan(usual[valid]), m.residual[valid],
+                                                usual[valid] + USUAL_WEIGHT * (m.residual[valid] - usual[valid]))
         clamped = np.clip(r_used, -s.gate_r_max, s.gate_r_max)
         clamped[:, [0, 1], [0, 1]] = np.clip(r_used[:, [0, 1], [0, 1]], s.gate_r_min, s.gate_r_max)
         self.gate_r[index[valid]] = clamped[valid]

@@ -25,12 +25,14 @@ def neighbourhood_support(fit: MotionFit, xy: np.ndarray, window: int) -> np.nda
 
 
 def state_noise(
-    fit: MotionFit, xy: np.ndarray, q_floor: float, q_misfit: float = 0.0, misfit_window: int = 15
+    fit: MotionFit, xy: np.ndarray, q_floor: float, q_misfit: float = 0.0, misfit_window: int = 15,
+    support: np.ndarray | None = None,
 ) -> np.ndarray:
     """Q_k at (N, 2) positions: (N, 2, 2) px^2.
 
     Q_k = P(x) Sigma_theta P(x)^T + (q_floor + q_misfit (1 - w(x))^2) I, with
-    w(x) the mean robust weight around x (``neighbourhood_support``).
+    w(x) the mean robust weight around x (``neighbourhood_support``), or the (N,)
+    ``support`` given instead (a covered point's, read where it was last seen: ``CLFTracker``).
 
     The paper only says Q_k is estimated from the images. Our choice has three
     parts: the uncertainty of the fitted motion propagated to the point; a floor
@@ -44,7 +46,9 @@ def state_noise(
     tiny on textured frames; it grows where the fit is poorly constrained.
     """
     basis = motion_basis(fit.model, xy, fit.origin, fit.length)
-    isotropic = q_floor + (q_misfit * (1 - neighbourhood_support(fit, xy, misfit_window)) ** 2 if q_misfit else 0.0)
+    if q_misfit and support is None:
+        support = neighbourhood_support(fit, xy, misfit_window)
+    isotropic = q_floor + (q_misfit * (1 - support) ** 2 if q_misfit else 0.0)
     return basis @ fit.theta_cov @ basis.transpose(0, 2, 1) + np.multiply.outer(isotropic, np.eye(2))
 
 
@@ -56,6 +60,11 @@ class StateNoise:
     q_misfit: float  #: px^2
     misfit_window: int  #: px
 
-    def at(self, fit: MotionFit, xy: np.ndarray) -> np.ndarray:
-        """Q_k (N, 2, 2) px^2 of the dynamics of ``fit`` at (N, 2) positions xy (px)."""
-        return state_noise(fit, xy, self.q_floor, self.q_misfit, self.misfit_window)
+    def at(self, fit: MotionFit, xy: np.ndarray, support: np.ndarray | None = None) -> np.ndarray:
+        """Q_k (N, 2, 2) px^2 of the dynamics of ``fit`` at (N, 2) positions xy (px); support (N,): the
+        neighbourhood support to use instead of the one read around xy (:func:`state_noise`)."""
+        return state_noise(fit, xy, self.q_floor, self.q_misfit, self.misfit_window, support)
+
+    def support(self, fit: MotionFit, xy: np.ndarray) -> np.ndarray:
+        """(N,) the mean robust weight of ``fit`` around (N, 2) positions xy that Q_k reads (``neighbourhood_support``)."""
+        return neighbourhood_support(fit, xy, self.misfit_window)
