@@ -157,12 +157,13 @@ def run_pass(
     return tracker.smooth(tracks) if config.smooth else tracks
 
 
-def frame_motions(images: Iterable[np.ndarray], first: Frame, motion: MotionStages, local: bool,
+def frame_motions(images: Iterable[np.ndarray], prev: Frame, motion: MotionStages, local: bool,
                   moving_from: float) -> Iterator[tuple[Frame, FrameMotion | None]]:
-    """Each frame after ``first`` (``images`` are frames ``first.index + 1``, ...) with the motion of the pair ending
-    there (``frame_motion``; ``local``: with the local field), estimated from frame index ``moving_from`` on."""
-    prev = first
-    for index, image in enumerate(images, first.index + 1):
+    """Each frame after ``prev`` (``images`` are frames ``prev.index + 1``, ...) with the motion of the pair ending
+    there (``frame_motion``; ``local``: with the local field), estimated from frame index ``moving_from`` on.
+
+    Only the last two frames are kept (their pyramids)."""
+    for index, image in enumerate(images, prev.index + 1):
         frame = Frame(index, image)
         yield frame, frame_motion(motion, prev, frame, local) if index >= moving_from else None
         prev = frame
@@ -209,6 +210,7 @@ def _track_frames(frames: Iterable[np.ndarray], info: SequenceInfo, config: Conf
     with Prefetched(pairs, name=MOTION_THREAD) if ahead else contextlib.nullcontext(pairs) as pairs:
         step(first, None, None)
         prev = first
+        del first  # from here on frame 0 is kept no longer than any frame (its grey image, its pyramid)
         for frame, pair_motion in pairs:
             if ahead:  # the motion thread goes on with its own Frame: no Frame is shared between the threads
                 frame = Frame(frame.index, frame.image)
