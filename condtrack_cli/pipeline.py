@@ -12,7 +12,10 @@ frames' reports on disk in blocks (``frame_reports.py``: memory flat in the
 clip's length) and hands each to an optional ``on_frame`` callback (progress
 display); the motion stage's work arrays go before the pass's reports are stacked.
 A reader thread decodes the next frame while the current one is tracked
-(``frames/prefetch.py``).
+(``frames/prefetch.py``), and with more than one OpenCV thread (``--threads``) a
+second thread estimates the motion of the pair k -> k+1 while the filter steps
+frame k (``_track_frames``): the work of both, mostly in OpenCV and numpy, which
+release the GIL, runs on two cores; the tracks are those of one thread bit for bit.
 
 A point queried at frame k > 0 is tracked forward from k and backward from k:
 the backward pass runs the same filter on the time-reversed frames k_max .. 0
@@ -28,9 +31,11 @@ fusing them across it.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
+import contextlib
 import dataclasses
+import math
 
 import numpy as np
 
@@ -43,7 +48,11 @@ from condtrack_cli.frame_reports import FrameReports, park, temporary_folder
 from condtrack_cli.frames.prefetch import Prefetched
 from condtrack_cli.motion.interface import FrameMotion, MotionStages
 from condtrack_cli.queries import detected_queries
+from condtrack_cli.threads import threads_in_use
 from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tracks
+
+#: The name of the thread that estimates the motion one frame pair ahead of the filter.
+MOTION_THREAD = "condtrack-motion-ahead"
 
 
 def build_stage(config: Config, kind: str):
@@ -148,36 +157,63 @@ def run_pass(
     return tracker.smooth(tracks) if config.smooth else tracks
 
 
+def frame_motions(images: Iterable[np.ndarray], prev: Frame, motion: MotionStages, local: bool,
+                  moving_from: float) -> Iterator[tuple[Frame, FrameMotion | None]]:
+    """Each frame after ``prev`` (``images`` are frames ``prev.index + 1``, ...) with the motion of the pair ending
+    there (``frame_motion``; ``local``: with the local field), estimated from frame index ``moving_from`` on.
+
+    Only the last two frames are kept (their pyramids)."""
+    for index, image in enumerate(images, prev.index + 1):
+        frame = Frame(index, image)
+        yield frame, frame_motion(motion, prev, frame, local) if index >= moving_from else None
+        prev = frame
+
+
 def _track_frames(frames: Iterable[np.ndarray], info: SequenceInfo, config: Config, queries: Queries | None,
                   seed: int, on_frame: Callable[[int, FrameEstimate], None] | None,
                   history: FrameReports) -> tuple[Tracker, np.ndarray]:
     """Step the tracker through ``frames``, each frame's report appended to ``history``; the tracker and the
     (P,) trackability scores of the queries (``detect/trackability.py``), each taken on its query frame.
 
-    The motion stage and the frames (work arrays, pyramids) are let go when this returns, before
-    the tracker stacks the pass.
+    The motion of a pair is estimated when the tracker needs it and a point was started before the pair's
+    second frame. When OpenCV may use more than one thread, a thread estimates it one pair ahead
+    (``frame_motions`` in a ``Prefetched``): the pair k -> k+1 while the tracker steps frame k. That thread
+    has Frames of its own (their pyramids, their grey images), so no lazy attribute of a Frame is ever
+    computed by both threads; the motion stage is used by that thread alone. The motion stage and the frames
+    (work arrays, pyramids) are let go when this returns, before the tracker stacks the pass.
     """
     motion = build_stage(config, "motion")
-    tracker = None
-    prev: Frame | None = None
-    for index, image in enumerate(frames):
-        frame = Frame(index, image)
-        if tracker is None:
-            if queries is None:
-                queries = detect_queries(config, frame)
-                if not len(queries):
-                    raise CondtrackError(f"{info.input}: no trackable point detected on frame 0")
-            tracker = build_tracker(config, queries, info, np.random.default_rng(seed), motion)
-            scorer = QueryScorer(queries, trackability_settings(config.stage("detect").settings)[0])
-            if config.smooth and not tracker.smoother:
-                raise CondtrackError(f"config key 'filter.smooth': method {config.method!r} has no smoother")
-        scorer.see(index, frame.gray)
-        moved = prev is not None and tracker.needs_motion and bool((queries.frame < index).any())
-        pair_motion = frame_motion(motion, prev, frame, tracker.needs_local_motion) if moved else None
+    frames = iter(frames)
+    image = next(frames, None)
+    if image is None:
+        raise CondtrackError(f"{info.input}: the input has no frame")
+    first = Frame(0, image)
+    if queries is None:
+        queries = detect_queries(config, first)
+        if not len(queries):
+            raise CondtrackError(f"{info.input}: no trackable point detected on frame 0")
+    tracker = build_tracker(config, queries, info, np.random.default_rng(seed), motion)
+    scorer = QueryScorer(queries, trackability_settings(config.stage("detect").settings)[0])
+    if config.smooth and not tracker.smoother:
+        raise CondtrackError(f"config key 'filter.smooth': method {config.method!r} has no smoother")
+    # the pair k-1 -> k moves when a point was started before k
+    moving_from = int(queries.frame.min()) + 1 if tracker.needs_motion and len(queries) else math.inf
+    ahead = moving_from < math.inf and threads_in_use()["opencv"] > 1
+    pairs = frame_motions(frames, Frame(0, image) if ahead else first, motion, tracker.needs_local_motion, moving_from)
+
+    def step(frame: Frame, prev: Frame | None, pair_motion: FrameMotion | None) -> None:
+        scorer.see(frame.index, frame.gray)
         history.append(tracker.step(frame, prev, pair_motion))
         if on_frame is not None:
-            on_frame(index, history.last)
-        prev = frame
-    if tracker is None:
-        raise CondtrackError(f"{info.input}: the input has no frame")
+            on_frame(frame.index, history.last)
+
+    with Prefetched(pairs, name=MOTION_THREAD) if ahead else contextlib.nullcontext(pairs) as pairs:
+        step(first, None, None)
+        prev = first
+        del first  # from here on frame 0 is kept no longer than any frame (its grey image, its pyramid)
+        for frame, pair_motion in pairs:
+            if ahead:  # the motion thread goes on with its own Frame: no Frame is shared between the threads
+                frame = Frame(frame.index, frame.image)
+            step(frame, prev, pair_motion)
+            prev = frame
     return tracker, scorer.scores

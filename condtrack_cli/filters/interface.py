@@ -35,8 +35,10 @@ class Tracker(Protocol):
 
     method: str  #: the method whose code (``registry.method_code``) its rows carry; a router's rows carry its members' codes
     smoother: str  #: name of the two-way smoother ``smooth`` runs ("" when the filter has none)
-    needs_motion: bool  #: ``step`` wants the global fit of each frame pair
-    needs_local_motion: bool  #: ``step`` wants the local field of each frame pair too
+    #: ``step`` wants the global fit of each frame pair; read once, when the tracker is built (the motion
+    #: of a pair may be estimated before the filter steps the pair's first frame)
+    needs_motion: bool
+    needs_local_motion: bool  #: ``step`` wants the local field of each frame pair too; read once, as ``needs_motion``
 
     def step(self, frame: Frame, prev: Frame | None, motion: FrameMotion | None) -> FrameEstimate:
         """Advance the points started before ``frame`` from ``prev``, start those queried on ``frame``, report all P.

@@ -5,7 +5,11 @@ factory called ``factory(settings) -> MotionStages``. For a filter that needs
 motion (``Tracker.needs_motion``) the pipeline calls, once per frame pair k-1 -> k
 with a point started before k, the global estimator, then the local one on the
 global fit when the filter needs it too (``Tracker.needs_local_motion``), and
-hands the filter the result as a :class:`FrameMotion`. Positions are px of frame k-1 in the package's
+hands the filter the result as a :class:`FrameMotion`. With more than one thread
+it does so in a thread of its own, one pair ahead of the filter: a stage's
+estimators are called from that thread alone, in pair order, and what they return
+(read by the filter while they estimate the next pair) must not change afterwards
+(work arrays reused from pair to pair stay inside the stage). Positions are px of frame k-1 in the package's
 pixel convention (x right, y down, (0, 0) the centre of the top-left pixel).
 The built-in stages are rows of ``registry.BUILTINS`` instead.
 """

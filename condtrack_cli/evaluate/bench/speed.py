@@ -231,13 +231,16 @@ def profile_shares(profile: Path) -> list[tuple[str, float, int]]:
 
 
 def profile_table(work: Path, shared: Path) -> list[str]:
-    """Markdown: where the time goes (cProfile of one ``condtrack track`` process per method and speed scene)."""
+    """Markdown: where the time goes (cProfile of one ``condtrack track --threads 1`` process per method and speed
+    scene: the motion stage in the profiled thread)."""
     scenes = speed_scenes(work, shared)
     lines = [
         "Share of one `condtrack track` process's time by stage (cProfile, which slows Python-level code more than "
-        "OpenCV/numpy calls), calls = calls of the stage's function. Scenes: "
+        "OpenCV/numpy calls), calls = calls of the stage's function, with one thread: with more, the motion "
+        "stage runs in a thread of its own, which cProfile does not see. Scenes: "
         + "; ".join(f"({chr(97 + i)}) {title}" for i, (title, _, _) in enumerate(scenes)) + ". "
-        "`python -m cProfile -o out.prof -m condtrack_cli track FRAMES -p QUERIES -m METHOD -o out.h5 -q`.",
+        "`python -m cProfile -o out.prof -m condtrack_cli track FRAMES -p QUERIES -m METHOD -o out.h5 -q "
+        "--threads 1`.",
         "",
         "| stage | " + " | ".join(f"{m} ({chr(97 + i)})" for i in range(len(scenes)) for m in FILTER_METHODS) + " |",
         "|---|" + "---|" * (len(scenes) * len(FILTER_METHODS)),
@@ -247,7 +250,8 @@ def profile_table(work: Path, shared: Path) -> list[str]:
         for method in FILTER_METHODS:
             profile = work / f"profile.{index}.{method}.prof"
             subprocess.run([sys.executable, "-m", "cProfile", "-o", str(profile), "-m", "condtrack_cli", "track",
-                            str(folder), "-p", str(queries), "-m", method, "-o", str(work / "profile.h5"), "-q"],
+                            str(folder), "-p", str(queries), "-m", method, "-o", str(work / "profile.h5"), "-q",
+                            "--threads", "1"],
                            check=True, stdout=subprocess.DEVNULL)
             columns.append(profile_shares(profile))
     for row, (name, _, _) in enumerate(columns[0]):
