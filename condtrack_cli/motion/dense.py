@@ -403,5 +403,5 @@ def make_dis_motion(settings: DisMotionSettings, **_context) -> MotionStages:
     return MotionStages(
         global_motion=DisGlobalMotion(settings, flow),
         local_motion=DisLocalMotion(settings, flow),
-        state_noise=StateNoise(settings.q_floor, settings.q_misfit, settings.misfit_window),
+        state_noise=StateNoise.of(settings),
     )

@@ -99,5 +99,5 @@ def make_regression_motion(settings: RegressionSettings, **_context) -> MotionSt
     return MotionStages(
         global_motion=GlobalMotion(settings),
         local_motion=RegressionMotion(settings),
-        state_noise=StateNoise(settings.q_floor, settings.q_misfit, settings.misfit_window),
+        state_noise=StateNoise.of(settings),
     )

@@ -60,6 +60,11 @@ class StateNoise:
     q_misfit: float  #: px^2
     misfit_window: int  #: px
 
+    @classmethod
+    def of(cls, settings) -> "StateNoise":
+        """The parameters of a motion stage's settings (any model with ``q_floor``, ``q_misfit``, ``misfit_window``)."""
+        return cls(settings.q_floor, settings.q_misfit, settings.misfit_window)
+
     def at(self, fit: MotionFit, xy: np.ndarray, support: np.ndarray | None = None) -> np.ndarray:
         """Q_k (N, 2, 2) px^2 of the dynamics of ``fit`` at (N, 2) positions xy (px); support (N,): the
         neighbourhood support to use instead of the one read around xy (:func:`state_noise`)."""

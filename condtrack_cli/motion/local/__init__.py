@@ -168,5 +168,5 @@ def make_robust_motion(settings: RobustMotionSettings, **_context) -> MotionStag
     return MotionStages(
         global_motion=GlobalMotion(settings),
         local_motion=LocalMotion(settings),
-        state_noise=StateNoise(settings.q_floor, settings.q_misfit, settings.misfit_window),
+        state_noise=StateNoise.of(settings),
     )
