@@ -187,7 +187,8 @@ class CLFTracker(MDRTracker):
             A = np.where(local[:, None, None], A_local, A_global)
         measured = self.reference.measure_in_gate(index, frame, x_pred, sigma_pred)
         if self.covering[index].any():  # a router's finding: the match lies on what covers the point
-            measured = dataclasses.replace(measured, valid=measured.valid & ~self.covering[index])
+            measured = dataclasses.replace(measured, valid=measured.valid & ~self.covering[index],
+                                           shown=measured.shown & ~self.covering[index])
             self.covering[index] = False
         # A point found on the previous frame and not on this one is covered (or lost): its dynamics' noise is its own
         # layer's (issue 31), not that of the neighbourhood now covering it; Q_k read there sized the gate only.
@@ -202,7 +203,7 @@ class CLFTracker(MDRTracker):
         self.xy[index], self.cov[index] = kalman.update(x_pred, sigma_pred, measured.z, measured.R_used, measured.valid)
         if self.transitions is not None:  # the filtered covariance (the reported one is the error model's)
             self.transitions.record(frame.index, index, sigma_post=self.cov[index])
-        self.visible[index] = measured.valid
+        self.visible[index], self.seen_unmeasured[index] = measured.valid, measured.shown & ~measured.valid
         self.z[index], self.R[index] = measured.z, measured.R
         retaken = self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
         disagreement = x_local - x_global if self.needs_local_motion else np.zeros_like(x_global)

@@ -11,6 +11,17 @@ one (issue 31): a match in the gate that fits the reference patch much worse tha
 the point's own matches have lies on something covering the point (an occluder
 that the gate overlaps, or that the point's gate was moved onto), and the point is
 covered there (R = inf), whatever the gate's position test says.
+
+A point is reported visible where its measurement is used, and also where its
+surface is too flat to measure (R = inf: a weak texture under noise, an edge)
+but its best match lies where its last R_k allows from the prediction (the gate's
+gamma), fits its reference within ``flat_visible_residual`` times its usual
+residual, and a flat patch would not (``shown``, issue 31): such a point is not
+covered, only not measurable on this frame. A covered point's best match in its
+wide gate lies pixels away; the flat-patch test keeps a weak reference, which a
+flat part of an occluder fits about as well as its own neighbourhood, from being
+shown through it. The filter's state does not see this: the measurement is not
+used, and the point counts as not found for every other rule.
 """
 
 from __future__ import annotations
@@ -32,13 +43,15 @@ USUAL_WEIGHT = 1.0 / 3.0
 @dataclass(frozen=True)
 class GatedMeasurement:
     """A measurement of n points: z (n, 2), R (n, 2, 2) raw (inf where uninformative),
-    R_used (n, 2, 2) finite (identity where R is inf), valid (n,) bool, residual (n,)."""
+    R_used (n, 2, 2) finite (identity where R is inf), valid (n,) bool, residual (n,), shown (n,) bool:
+    valid, or unmeasurable but fitting its reference (module docstring)."""
 
     z: np.ndarray
     R: np.ndarray
     R_used: np.ndarray
     valid: np.ndarray
     residual: np.ndarray
+    shown: np.ndarray
 
 
 class ReferenceMatcher:
@@ -54,13 +67,21 @@ class ReferenceMatcher:
         #: (P,) each point's usual residual (grey levels^2): the mean of the residuals of its matches used, each
         #: weighing ``USUAL_WEIGHT`` against the mean before it (NaN before its first match)
         self.usual = np.full(n_points, np.nan)
+        #: (P,) the matching cost of each reference patch against a flat patch at its mean (grey levels^2)
+        self.flat_cost = np.full(n_points, np.nan)
 
     def start(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> None:
         """Take the reference patches of points ``index`` at (n, 2) ``xy`` in their query frame."""
         if self.noise_sigma is None:
             self.noise_sigma = self.measure.noise_sigma(frame.gray)
-        self.templates[index] = self.measure.templates(frame.gray, xy)
+        self._take(index, self.measure.templates(frame.gray, xy))
         self.usual[index] = np.nan
+
+    def _take(self, index: np.ndarray, patches: np.ndarray) -> None:
+        """Points ``index`` take the (n, t, t) ``patches`` as their reference; their ``flat_cost`` with them."""
+        self.templates[index] = patches
+        flat = np.broadcast_to(patches.mean(axis=(1, 2), keepdims=True), patches.shape)
+        self.flat_cost[index] = self.measure.cost(patches, np.ascontiguousarray(flat, np.float32))
 
     def measure_in_gate(self, index: np.ndarray, frame: Frame, predicted: np.ndarray, s_pred: np.ndarray) -> GatedMeasurement:
         """Match points ``index`` around (n, 2) ``predicted`` with predicted covariance (n, 2, 2) ``s_pred``."""
@@ -69,15 +90,21 @@ class ReferenceMatcher:
         nu = np.where(m.informative[:, None], m.z - predicted, 0.0)
         valid = m.informative & (kalman.mahalanobis2(nu, s_pred + r_used) <= self.gamma)
         s = self.settings
+        usual = self.usual[index]
         if s.foreign_residual is not None:
-            usual = self.usual[index]
             valid &= ~(m.residual > s.foreign_residual * usual)  # False where there is no usual residual yet
+        shown = valid.copy()
+        if s.flat_visible_residual is not None:  # NaN residuals (no match) and usual residuals compare False
+            bound = s.flat_visible_residual * usual
+            near = kalman.mahalanobis2(m.z - predicted, self.gate_r[index]) <= self.gamma  # NaN z: False
+            shown |= ~m.informative & near & (m.residual <= bound) & (self.flat_cost[index] > bound)
+        if s.foreign_residual is not None or s.flat_visible_residual is not None:
             self.usual[index[valid]] = np.where(np.isnan(usual[valid]), m.residual[valid],
                                                 usual[valid] + USUAL_WEIGHT * (m.residual[valid] - usual[valid]))
         clamped = np.clip(r_used, -s.gate_r_max, s.gate_r_max)
         clamped[:, [0, 1], [0, 1]] = np.clip(r_used[:, [0, 1], [0, 1]], s.gate_r_min, s.gate_r_max)
         self.gate_r[index[valid]] = clamped[valid]
-        return GatedMeasurement(m.z, m.R, r_used, valid, m.residual)
+        return GatedMeasurement(m.z, m.R, r_used, valid, m.residual, shown)
 
     def refresh(
         self, index: np.ndarray, prev: Frame, x_prev: np.ndarray, frame: Frame, x_post: np.ndarray,
@@ -108,6 +135,6 @@ class ReferenceMatcher:
         patches = self.measure.templates(frame.gray, x_post[candidates])
         before = self.measure.templates(prev.gray, x_prev[candidates])
         steady = self.measure.cost(patches, before) <= s.update_abruptness * measured.residual[candidates]
-        self.templates[index[candidates[steady]]] = patches[steady]
+        self._take(index[candidates[steady]], patches[steady])
         retaken[candidates[steady]] = True
         return retaken

@@ -34,6 +34,12 @@ class MeasuredFilterSettings(InitialStateSettings):
         description="a match whose residual exceeds this many times the point's usual one lies on what covers it: "
                     "not used (null: off)",
     )
+    flat_visible_residual: float | None = Field(
+        2.5, gt=1,
+        description="a point whose correlation surface is too flat to measure (R = inf) is still reported visible "
+                    "when its best match fits its reference within this many times its usual residual; the "
+                    "measurement is not used either way (null: reported not visible, the paper's)",
+    )
 
 
 class STKSettings(StageSettings):
