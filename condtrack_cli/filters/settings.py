@@ -34,6 +34,12 @@ class MeasuredFilterSettings(InitialStateSettings):
         description="a match whose residual exceeds this many times the point's usual one lies on what covers it: "
                     "not used (null: off)",
     )
+    lk_fallback: bool = Field(
+        True,
+        description="a point found on the previous frame whose match is not used is matched once more around where "
+                    "pyramidal Lucas-Kanade moves it, with the same tests (false: the gate around the prediction only, "
+                    "the paper's)",
+    )
 
 
 class STKSettings(StageSettings):
