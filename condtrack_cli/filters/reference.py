@@ -29,10 +29,11 @@ from condtrack_cli.types import Frame
 
 def lk_centres(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(n, 2) positions in frame ``cur`` of (n, 2) points ``xy`` of frame ``prev`` by OpenCV's pyramidal Lucas-Kanade
-    on the frames at half resolution (``cv2.pyrDown``; an 11 px window, maxLevel 2: the reach of maxLevel 3 at full
-    resolution, at a quarter of its cost), and (n,) bool: found (LK's status, a finite position)."""
+    on the frames at half resolution (``cv2.pyrDown``; a 15 px window, maxLevel 2: about the reach of the STK baseline's
+    21 px window at maxLevel 3 on the full frames, at a third of its cost), and (n,) bool: found (LK's status, a finite
+    position)."""
     half = np.asarray(xy, np.float64) / 2  # pyrDown's pixel (i, j) is centred on the full frame's (2i, 2j)
-    settings = STKSettings(win_size=11, levels=3)
+    settings = STKSettings(win_size=15, levels=3)
     moved, ok = lucas_kanade(prev, cur, half, settings)
     return moved * 2, ok & np.isfinite(moved).all(axis=1)
 
