@@ -1,4 +1,5 @@
-"""The Lucas-Kanade fallback gate centre (``lk_fallback``, ``filters/reference.py``; issue 31).
+"""The Lucas-Kanade fallback gate centre (``lk_fallback``) and the visibility of an uninformative match as good as the
+point's usual ones (``seen_residual``), ``filters/reference.py``; issue 31.
 
 Known truth: frame 1 is frame 0 (a photograph, with noise) moved by (27, -19) px, a jump far beyond the
 16 px search square; the filters predict no motion. Without the fallback no point is found at its true
@@ -88,3 +89,51 @@ def test_searched_is_the_measurement_gate():
     np.testing.assert_array_equal(searched(predicted, cov, xy, settings), [True, False, False, False])
     np.testing.assert_array_equal(searched(predicted, cov, predicted + [[3.0, 0.0], [0, 0], [15.0, 0], [14.0, 0]],
                                            settings), [True, True, True, True])
+
+
+class _FlatMeasure:
+    """A measurement stage whose frame k holds the point at (50, 40) with residual ``residuals[k]``: informative
+    (R = 0.5 I) on the frames of ``informative``, a flat surface (R infinite, the same minimum) elsewhere; frame k is
+    read from the grey level of its top-left pixel."""
+
+    template_side = 3
+
+    def __init__(self, residuals: dict[int, float], informative: set[int]):
+        self.residuals, self.informative = residuals, informative
+
+    def templates(self, gray, xy):
+        return np.zeros((len(xy), 3, 3), np.float32)
+
+    def noise_sigma(self, gray):
+        return 1.0
+
+    def measure(self, gray, templates, predicted, gate_cov, sigma):
+        from condtrack_cli.measure.interface import Measurement
+
+        k, n = int(gray[0, 0]), len(predicted)
+        informative = k in self.informative
+        R = np.tile(0.5 * np.eye(2) if informative else np.diag([np.inf, np.inf]), (n, 1, 1))
+        return Measurement(np.tile((50.0, 40.0), (n, 1)), R, np.full(n, self.residuals[k]), np.full(n, informative))
+
+
+def test_an_uninformative_match_as_good_as_the_usual_ones_is_seen_not_used():
+    """``seen_residual`` (2): frames 1-2 informative matches with residual 10; frame 3 a flat surface whose minimum
+    (in the gate) has residual 15 (<= 2 x 10): not used, but seen; frame 4 flat with residual 40 (> 2 x the usual):
+    neither (an occluder); frame 5 flat, residual 15, but 30 px from the prediction: outside the gate, not seen.
+    With ``seen_residual: null`` nothing uninformative is seen."""
+    residuals = {1: 10.0, 2: 10.0, 3: 15.0, 4: 40.0, 5: 15.0}
+    measure = _FlatMeasure(residuals, informative={1, 2})
+    frames = [Frame(k, np.full((80, 100), k, np.uint8)) for k in range(6)]
+    s_pred = np.eye(2)[None]
+    for seen_residual, expected in ((2.0, [False, False, True, False, False]), (None, [False] * 5)):
+        settings = MeasuredFilterSettings(seen_residual=seen_residual, lk_fallback=False)
+        reference = ReferenceMatcher(measure, settings, 1, 9.21)
+        reference.start(np.array([0]), frames[0], np.array([[50.0, 40.0]]))
+        seen, valid = [], []
+        for k in residuals:
+            predicted = np.array([[50.0, 40.0]]) if k != 5 else np.array([[80.0, 40.0]])
+            m = reference.measure_in_gate(np.array([0]), frames[k], predicted, s_pred)
+            seen.append(bool(m.seen[0]))
+            valid.append(bool(m.valid[0]))
+        assert seen == expected
+        assert valid == [True, True, False, False, False]

@@ -355,7 +355,7 @@ class AutoTracker(Tracker):
 
     def _collect(self, index: np.ndarray, tracker: Tracker) -> None:
         """Copy the state of points ``index`` from ``tracker`` into the router's report."""
-        for name in ("xy", "cov", "visible", "z", "R"):
+        for name in ("xy", "cov", "visible", "seen", "z", "R"):
             getattr(self, name)[index] = getattr(tracker, name)[index]
         self.method_code[index] = method_code(tracker.method)
 

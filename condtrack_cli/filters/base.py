@@ -35,6 +35,9 @@ class Tracker:
         self.xy = np.full((p, 2), np.nan)
         self.cov = np.full((p, 2, 2), np.nan)
         self.visible = np.zeros(p, bool)
+        #: (P,) bool, not found on this frame (``visible`` False) but reported visible: its gate held a match as good as
+        #: its usual ones that the filter did not use (``seen_residual``, ``filters/reference.py``)
+        self.seen = np.zeros(p, bool)
         self.z = np.full((p, 2), np.nan)
         self.R = np.full((p, 2, 2), np.nan)
         self.method_code = np.full(p, -1, np.int8)
@@ -43,6 +46,7 @@ class Tracker:
         """Advance the started points from ``prev`` to ``frame`` by ``motion``, start the new ones, report all."""
         self.z[:] = np.nan
         self.R[:] = np.nan
+        self.seen[:] = False
         started = np.flatnonzero(self.queries.frame < frame.index)
         if prev is not None and started.size:
             self._advance(started, prev, frame, motion)
@@ -53,7 +57,7 @@ class Tracker:
             self.method_code[new] = method_code(self.method)
             self._start(new, frame)
         return FrameEstimate(
-            xy=self.xy.copy(), cov=self.reported_cov(), dof=self.reported_dof(), visible=self.visible.copy(),
+            xy=self.xy.copy(), cov=self.reported_cov(), dof=self.reported_dof(), visible=self.visible | self.seen,
             z=self.z.copy(), R=self.R.copy(), method=self.method_code.copy(),
         )
 
@@ -71,7 +75,7 @@ class Tracker:
 
     def advance_members(self, index: np.ndarray, prev: Frame, frame: Frame, motion: FrameMotion | None) -> None:
         """``_advance`` of points ``index`` alone (none: nothing), their z and R reset first."""
-        self.z[index], self.R[index] = np.nan, np.nan
+        self.z[index], self.R[index], self.seen[index] = np.nan, np.nan, False
         if index.size:
             self._advance(index, prev, frame, motion)
 

@@ -189,7 +189,8 @@ class CLFTracker(MDRTracker):
                                                   found_before & ~self.covering[index])
         x_pred = x_pred + measured.shift  # moved where the fallback centre's match is used (``lk_fallback``)
         if self.covering[index].any():  # a router's finding: the match lies on what covers the point
-            measured = dataclasses.replace(measured, valid=measured.valid & ~self.covering[index])
+            measured = dataclasses.replace(measured, valid=measured.valid & ~self.covering[index],
+                                           seen=measured.seen & ~self.covering[index])
             self.covering[index] = False
         # A point found on the previous frame and not on this one is covered (or lost): its dynamics' noise is its own
         # layer's (issue 31), not that of the neighbourhood now covering it; Q_k read there sized the gate only.
@@ -204,7 +205,7 @@ class CLFTracker(MDRTracker):
         self.xy[index], self.cov[index] = kalman.update(x_pred, sigma_pred, measured.z, measured.R_used, measured.valid)
         if self.transitions is not None:  # the filtered covariance (the reported one is the error model's)
             self.transitions.record(frame.index, index, sigma_post=self.cov[index])
-        self.visible[index] = measured.valid
+        self.visible[index], self.seen[index] = measured.valid, measured.seen
         self.z[index], self.R[index] = measured.z, measured.R
         retaken = self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
         disagreement = x_local - x_global if self.needs_local_motion else np.zeros_like(x_global)

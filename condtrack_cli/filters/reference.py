@@ -63,6 +63,7 @@ class GatedMeasurement:
     valid: np.ndarray
     residual: np.ndarray
     shift: np.ndarray  #: (n, 2) the move of the prediction to the fallback gate centre (0: none)
+    seen: np.ndarray  #: (n,) bool, not valid but reported visible (``seen_residual``)
 
 
 class ReferenceMatcher:
@@ -127,7 +128,14 @@ class ReferenceMatcher:
         clamped = np.clip(r_used, -s.gate_r_max, s.gate_r_max)
         clamped[:, [0, 1], [0, 1]] = np.clip(r_used[:, [0, 1], [0, 1]], s.gate_r_min, s.gate_r_max)
         self.gate_r[index[valid]] = clamped[valid]
-        return GatedMeasurement(m.z, m.R, r_used, valid, m.residual, shift)
+        seen = np.zeros(len(index), bool)
+        if s.seen_residual is not None:  # a match at the usual residual in the gate: the point is there, R_k aside
+            near = np.isfinite(m.z).all(axis=1) & ~valid
+            if near.any():
+                nu = np.where(near[:, None], m.z - (predicted + shift), 0.0)
+                in_gate = kalman.mahalanobis2(nu, s_pred + self.gate_r[index]) <= self.gamma
+                seen = near & in_gate & (m.residual <= s.seen_residual * self.usual[index])
+        return GatedMeasurement(m.z, m.R, r_used, valid, m.residual, shift, seen)
 
     def _half(self, frame: Frame) -> np.ndarray:
         """``frame``'s image at half resolution (``cv2.pyrDown``), kept for the last two frames asked (a frame is

@@ -40,6 +40,12 @@ class MeasuredFilterSettings(InitialStateSettings):
                     "pyramidal Lucas-Kanade moves it, with the same tests (false: the gate around the prediction only, "
                     "the paper's)",
     )
+    seen_residual: float | None = Field(
+        2.0, gt=0,
+        description="a point whose gate holds a match that is not used (R_k infinite: a flat or ambiguous surface) is "
+                    "reported visible when that match's residual is at most this many times the point's usual one "
+                    "(the filter does not use it; null: visible only where the match is used)",
+    )
 
 
 class STKSettings(StageSettings):
