@@ -22,8 +22,7 @@ import numpy as np
 
 from condtrack_cli.filters import kalman
 from condtrack_cli.measure.interface import Measurement, Measurer
-from condtrack_cli.filters.settings import MeasuredFilterSettings, STKSettings
-from condtrack_cli.filters.stk import lucas_kanade
+from condtrack_cli.filters.settings import MeasuredFilterSettings
 from condtrack_cli.types import Frame
 
 
@@ -32,9 +31,12 @@ def lk_centres(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray) -> tuple[np.nd
     on the frames at half resolution (``cv2.pyrDown``; a 15 px window, maxLevel 2: about the reach of the STK baseline's
     21 px window at maxLevel 3 on the full frames, at a third of its cost), and (n,) bool: found (LK's status, a finite
     position)."""
-    half = np.asarray(xy, np.float64) / 2  # pyrDown's pixel (i, j) is centred on the full frame's (2i, 2j)
-    settings = STKSettings(win_size=15, levels=3)
-    moved, ok = lucas_kanade(prev, cur, half, settings)
+    half = (np.asarray(xy, np.float64) / 2).astype(np.float32).reshape(-1, 1, 2)  # pyrDown's (i, j): the frame's (2i, 2j)
+    moved, status, _ = cv2.calcOpticalFlowPyrLK(  # the STK baseline's criteria (``filters/stk.py``)
+        prev, cur, half, None, winSize=(15, 15), maxLevel=2,
+        criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01), minEigThreshold=1e-4,
+    )
+    moved, ok = moved.reshape(-1, 2).astype(np.float64), status.reshape(-1).astype(bool)
     return moved * 2, ok & np.isfinite(moved).all(axis=1)
 
 
@@ -96,7 +98,8 @@ class ReferenceMatcher:
         With ``lk_fallback`` and the previous frame ``prev``, the points of (n,) bool ``retry`` (found on ``prev``
         at (n, 2) ``x_prev``) whose match is not used, and not seen (below), are matched once more around a second
         gate centre: where pyramidal Lucas-Kanade moves them from ``x_prev`` (:func:`lk_centres`), when that centre
-        lies outside the gate just searched (:func:`searched`), with the same covariance and the same tests. Where
+        lies outside the gate just searched (:func:`searched`), with the same covariance and the same tests, and used
+        only if its residual is below ``lk_better`` times the best one of the gate around the prediction. Where
         that match is used, the prediction is moved to that centre: ``shift`` (n, 2), the displacement the filter
         adds to its prediction (0 elsewhere). On KITTI seq005 (290 points, 22 frame pairs, ``auto``) about 220
         points are tried and 6 matches won; on the card scene's entry, the card's points lost by the local field.
@@ -128,6 +131,8 @@ class ReferenceMatcher:
                 tried, centre = tried[ok], centre[ok]
             if tried.size:
                 m2, r2, valid2 = self._gated(index[tried], frame, centre, s_pred[tried])
+                # and it must fit the reference clearly better than the best match around the prediction (none: NaN)
+                valid2 &= ~(m2.residual >= s.lk_better * m.residual[tried])
                 won = tried[valid2]
                 if won.size:
                     m = Measurement(*(np.array(a, copy=True) for a in (m.z, m.R, m.residual, m.informative)))

@@ -40,6 +40,11 @@ class MeasuredFilterSettings(InitialStateSettings):
                     "pyramidal Lucas-Kanade moves it, with the same tests (false: the gate around the prediction only, "
                     "the paper's)",
     )
+    lk_better: float = Field(
+        0.5, gt=0,
+        description="lk_fallback: the match around the Lucas-Kanade centre is used only where its residual is below "
+                    "this share of the best residual in the gate around the prediction",
+    )
     seen_residual: float | None = Field(
         2.0, gt=0,
         description="a point whose gate holds a match that is not used (R_k infinite: a flat or ambiguous surface) is "
