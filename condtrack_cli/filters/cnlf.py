@@ -240,11 +240,13 @@ class CNLFTracker(Tracker):
         if covered.any():
             mu[covered] = x[covered] + self._layer_displacement(index[covered], x[covered], motion.global_fit)
         Q = field.noise(x)  # (n, N, 2, 2)
+        gate_mean, gate_cov = mixture_moments(self.log_w[index], mu, Q)
+        measured = self.reference.measure_in_gate(index, frame, gate_mean, gate_cov, prev, x_prev, found_before)
+        mu = mu + measured.shift[:, None]  # the mixture moved where the fallback centre's match is used (``lk_fallback``)
+        gate_mean = gate_mean + measured.shift
         if self.transitions is not None:  # particles drawn this frame from the previous one's: smoothable
             linked = self.lineage_start[index] < frame.index
             self.transitions.record(frame.index, index[linked], mu=mu[linked], Q=Q[linked])
-        gate_mean, gate_cov = mixture_moments(self.log_w[index], mu, Q)
-        measured = self.reference.measure_in_gate(index, frame, gate_mean, gate_cov)
         particles, log_w = propagate(self.rng, self.log_w[index], mu, Q, measured.z, measured.R_used, measured.valid)
         resampled, picks = resample(self.rng, particles, log_w, self.settings)
         self.ancestors = (index[resampled], picks)

@@ -34,6 +34,17 @@ class MeasuredFilterSettings(InitialStateSettings):
         description="a match whose residual exceeds this many times the point's usual one lies on what covers it: "
                     "not used (null: off)",
     )
+    lk_fallback: bool = Field(
+        True,
+        description="a point found on the previous frame whose match is not used is matched once more around where "
+                    "pyramidal Lucas-Kanade moves it, with the same tests (false: the gate around the prediction only, "
+                    "the paper's)",
+    )
+    lk_better: float = Field(
+        0.5, gt=0,
+        description="lk_fallback: the match around the Lucas-Kanade centre is used only where its residual is below "
+                    "this share of the best residual in the gate around the prediction",
+    )
     flat_visible_residual: float | None = Field(
         2.5, gt=1,
         description="a point whose correlation surface is too flat to measure (R = inf) is still reported visible "

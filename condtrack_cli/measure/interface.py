@@ -48,6 +48,10 @@ class Measurer(Protocol):
     def cost(self, templates: np.ndarray, patches: np.ndarray) -> np.ndarray:
         """(M,) matching cost of aligned (M, t, t) patch pairs (grey levels^2)."""
 
+    # Optional: ``searched(predicted (P, 2), gate_cov (P, 2, 2), xy (P, 2)) -> (P,) bool``, whether the search of
+    # :meth:`measure` around ``predicted`` held the candidate nearest to ``xy`` (the filters' Lucas-Kanade fallback,
+    # ``filters/reference.py``, re-measures only around centres outside it; without it: the gate ellipse).
+
     def measure(self, gray: np.ndarray, templates: np.ndarray, predicted: np.ndarray, gate_cov: np.ndarray,
                 sigma: float) -> Measurement:
         """Match (P, t, t) ``templates`` around (P, 2) ``predicted`` positions within the gate of

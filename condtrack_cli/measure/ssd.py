@@ -123,6 +123,18 @@ def measure(
     return Measurement(z, R, residual, informative)
 
 
+def searched(predicted: np.ndarray, gate_cov: np.ndarray, xy: np.ndarray, settings: SSDSettings) -> np.ndarray:
+    """(n,) bool: :func:`measure`'s gate around (n, 2) ``predicted`` with covariance (n, 2, 2) ``gate_cov`` holds the
+    candidate nearest to (n, 2) positions ``xy`` (the frame's bounds aside)."""
+    half_sizes = _half_sizes(gate_cov, settings)
+    offset = np.rint(xy) - np.rint(predicted)  # the candidate's offset from the rounded prediction
+    chebyshev = np.abs(offset).max(axis=1)
+    nu = np.rint(xy) - predicted
+    with np.errstate(invalid="ignore"):
+        inside = np.einsum("ni,ni->n", nu, np.linalg.solve(gate_cov, nu[..., None])[..., 0]) <= settings.gamma
+    return (chebyshev <= half_sizes) & (inside | (chebyshev <= settings.search_min))
+
+
 def _search_groups(half_sizes: np.ndarray, known: np.ndarray, settings: SSDSettings) -> list[np.ndarray]:
     """Index arrays of the ``known`` points by class of search half-size, at most _CHUNK points each.
 
@@ -236,6 +248,10 @@ class SSDMeasure:
     def cost(self, templates: np.ndarray, patches: np.ndarray) -> np.ndarray:
         """(M,) :func:`matching_cost` of aligned (M, t, t) patch pairs with this stage's cost."""
         return matching_cost(templates, patches, self.settings.cost)
+
+    def searched(self, predicted: np.ndarray, gate_cov: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        """:func:`searched` with this stage's settings."""
+        return searched(predicted, gate_cov, xy, self.settings)
 
     def noise_sigma(self, gray: np.ndarray) -> float:
         """The configured acquisition noise std, or its estimate on ``gray`` (grey levels)."""

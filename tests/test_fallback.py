@@ -1,0 +1,91 @@
+"""The Lucas-Kanade fallback gate centre (``lk_fallback``), ``filters/reference.py``; issue 31 (the visibility of a
+point too flat to measure, ``flat_visible_residual``: tests/test_clf.py).
+
+Known truth: frame 1 is frame 0 (a photograph, with noise) moved by (27, -19) px, a jump far beyond the
+16 px search square; the filters predict no motion. Without the fallback no point is found at its true
+position; with it, every point found on frame 0 is matched again around where pyramidal Lucas-Kanade
+moves it and found there, and the prediction moves to that centre (``shift``).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from condtrack_cli.filters.reference import ReferenceMatcher, lk_centres
+from condtrack_cli.filters.settings import MeasuredFilterSettings
+from condtrack_cli.measure.response import SSDSettings
+from condtrack_cli.measure.ssd import SSDMeasure, searched
+from condtrack_cli.types import Frame
+
+from conftest import load_asset
+
+JUMP = np.array([27.0, -19.0])
+
+
+def _jump_frames() -> tuple[Frame, Frame, np.ndarray]:
+    """Frames 0 and 1 (frame 1 = frame 0 moved by JUMP) and (n, 2) textured points of frame 0 well inside both."""
+    rng = np.random.default_rng(0)
+    photo = load_asset("camera.png").astype(np.float64)
+    h, w = 200, 240
+    top, left = 60, 60
+    crop0 = photo[top : top + h, left : left + w]
+    crop1 = photo[top - int(JUMP[1]) : top - int(JUMP[1]) + h, left - int(JUMP[0]) : left - int(JUMP[0]) + w]
+    images = [np.clip(c + rng.normal(0, 1.0, c.shape), 0, 255).astype(np.uint8) for c in (crop0, crop1)]
+    corners = cv2.goodFeaturesToTrack(images[0], 40, 0.02, 12)[:, 0].astype(np.float64)
+    inside = ((corners >= 40) & (corners + JUMP <= [w - 41, h - 41]) & (corners + JUMP >= 40)).all(axis=1)
+    inside &= (corners <= [w - 41, h - 41]).all(axis=1)
+    return Frame(0, images[0]), Frame(1, images[1]), corners[inside]
+
+
+def _match(lk_fallback: bool, retry: np.ndarray | None = None, predicted_step: np.ndarray = np.zeros(2)):
+    """The points of :func:`_jump_frames` and their measurement on frame 1, predicted moved by ``predicted_step``."""
+    frame0, frame1, xy = _jump_frames()
+    measure = SSDMeasure(SSDSettings())
+    reference = ReferenceMatcher(measure, MeasuredFilterSettings(lk_fallback=lk_fallback), len(xy), 9.21)
+    index = np.arange(len(xy))
+    reference.start(index, frame0, xy)
+    s_pred = np.repeat(np.eye(2)[None], len(xy), 0)
+    retry = np.ones(len(xy), bool) if retry is None else retry
+    return xy, reference.measure_in_gate(index, frame1, xy + predicted_step, s_pred, frame0, xy, retry)
+
+
+def test_a_jump_beyond_the_search_square_is_found_around_the_lucas_kanade_centre():
+    xy, oracle = _match(False, predicted_step=JUMP)  # the points found where the prediction is right
+    assert oracle.valid.sum() >= 5
+    np.testing.assert_allclose(oracle.z[oracle.valid], (xy + JUMP)[oracle.valid], atol=0.25)
+    xy, off = _match(False)
+    assert not np.any(off.valid & (np.linalg.norm(off.z - (xy + JUMP), axis=1) < 2.0))
+    assert np.all(off.shift == 0)
+    xy, on = _match(True)
+    np.testing.assert_array_equal(on.valid, oracle.valid)
+    np.testing.assert_allclose(on.z[on.valid], (xy + JUMP)[on.valid], atol=0.25)
+    np.testing.assert_allclose(on.shift[on.valid], np.broadcast_to(JUMP, xy.shape)[on.valid], atol=1.0)  # LK's centre
+    assert np.all(on.shift[~on.valid] == 0)
+
+
+def test_only_points_found_before_are_tried():
+    xy, found = _match(True)
+    retry = np.arange(len(xy)) % 2 == 0
+    _, measured = _match(True, retry)
+    np.testing.assert_array_equal(measured.valid[retry], found.valid[retry])
+    assert not np.any(measured.valid[~retry] & (np.linalg.norm(measured.z[~retry] - (xy[~retry] + JUMP), axis=1) < 2.0))
+    assert np.all(measured.shift[~retry] == 0)
+
+
+def test_lucas_kanade_centres_at_half_resolution_follow_the_jump():
+    frame0, frame1, xy = _jump_frames()
+    centre, ok = lk_centres(cv2.pyrDown(frame0.image), cv2.pyrDown(frame1.image), xy)
+    assert ok.all()
+    np.testing.assert_allclose(centre, xy + JUMP, atol=1.0)
+
+
+def test_searched_is_the_measurement_gate():
+    """A candidate the SSD gate holds is 'searched'; one beyond the square or the ellipse is not."""
+    settings = SSDSettings()
+    predicted = np.array([[50.2, 40.7]] * 4)
+    cov = np.array([np.eye(2), np.eye(2), 100 * np.eye(2), np.diag([100.0, 1.0])])
+    xy = predicted + np.array([[2.0, 1.0], [5.0, 0.0], [20.0, 0.0], [0.0, 8.0]])
+    np.testing.assert_array_equal(searched(predicted, cov, xy, settings), [True, False, False, False])
+    np.testing.assert_array_equal(searched(predicted, cov, predicted + [[3.0, 0.0], [0, 0], [15.0, 0], [14.0, 0]],
+                                           settings), [True, True, True, True])
