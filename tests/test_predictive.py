@@ -9,7 +9,7 @@ from click.testing import CliRunner
 
 import condtrack_cli as ct
 from condtrack_cli.cli import cli
-from condtrack_cli.filters.calibration import CORE_MAX, RATIO_MIN, ErrorModel, age_gains, scale_ratio, tail_dof
+from condtrack_cli.filters.calibration import CORE_MAX, RATIO_MIN, ErrorModel, scale_ratio, tail_dof
 from condtrack_cli.predictive import major_std
 
 from conftest import SAMPLES
@@ -37,7 +37,7 @@ def test_dof_follows_the_error_model_and_stays_above_two(clf_tracks):
     one = np.ones(1)
     # the filter's own covariance alone: rho is the core's ratio, min(CORE_GAIN lambda_p^CORE_POWER, CORE_MAX)
     assert scale_ratio(one, 0 * one, 0 * one, 0 * one, np.array([1e6])) == pytest.approx(CORE_MAX)
-    low, high = (scale_ratio(one, 0 * one, 0 * one, 0 * one, np.array([v])) for v in (1e-4, 1e-2))
+    low, high = (scale_ratio(one, 0 * one, 0 * one, 0 * one, np.array([v])) for v in (1e-3, 1e-1))
     assert 0 < low < high < CORE_MAX  # a point whose innovations are smaller has the tighter core
     dof, has_state = clf_tracks.dof, clf_tracks.result.has_state
     assert np.isnan(dof[~has_state]).all()
@@ -49,8 +49,8 @@ def test_dof_follows_the_error_model_and_stays_above_two(clf_tracks):
 def test_a_points_own_innovations_set_its_core_not_its_covariance():
     """Two groups of points found on one frame with the same prediction, gate and measurement covariance: one
     matched on its prediction (NIS 0), one with innovations as S says (NIS 2 on average). The reported covariance
-    is max(lambda, 1) Sigma times the found row's own and age gains (``age_gains``) + D; the first group's core on its
-    own term is tighter (lambda_p smaller, ``scale_ratio``); its nu also follows its (smaller) age term."""
+    stays max(lambda, 1) Sigma + D (lambda_p does not enter it); the first group's core is tighter (lambda_p
+    smaller), so its nu is smaller."""
     rng = np.random.default_rng(0)
     n = 400
     model = ErrorModel(n, 9.21)
@@ -64,10 +64,9 @@ def test_a_points_own_innovations_set_its_core_not_its_covariance():
     model.update(index, zero, unit, z, unit, found, zero, 0.5 * unit, ~found, zero)
     tight, loose = slice(0, n // 2), slice(n // 2, n)
     assert model.consistency[tight].max() < model.consistency[loose].mean()
-    own, aged = age_gains(model.consistency[tight], np.ones(n // 2), (z[tight] ** 2).sum(axis=1))
-    scaled = max(model.scale, 1.0) * 0.5 * np.eye(2)
-    np.testing.assert_allclose(model.reported[tight], (own + aged)[:, None, None] * scaled + model.drift[tight],
-                               rtol=1e-12)
+    assert np.median(model.dof[tight]) < np.median(model.dof[loose])
+    own = max(model.scale, 1.0) * 0.5 * np.eye(2)
+    np.testing.assert_allclose(model.reported[tight], own + model.drift[tight], rtol=1e-12)
     assert (model.dof > 2).all()
 
 

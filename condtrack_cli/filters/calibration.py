@@ -100,18 +100,6 @@ by term and weighted by each term's trace (``scale_ratio``):
   ``RATIO_COAST``: both are mixtures of rare large errors and many small ones
   summarised by their second moment, so their core is a small part of it.
 
-Age since the query (issue 27, branch age27). On found rows the error is drift
-that grows with the frames t since the query, shared by prediction and
-measurement (bench/results.md): the coverage of max(lambda, 1) Sigma is far
-above its level one to four frames after the query and below it after 16, on the
-synthetic scenes and on the real sets alike. A found row's own term is therefore
-max(lambda, 1) Sigma c (``OWN_GAIN`` + ``AGE_GAIN`` t^``AGE_POWER``
-max(m, ``INNOVATION_FLOOR``)^``INNOVATION_POWER``), c = max(lambda_p,
-``CONSISTENCY_FLOOR``)^``CONSISTENCY_POWER``, m the point's squared innovations
-summed since its query over t (px^2): a per-match term and an accumulated one
-(``age_gains``), the latter at ratio ``RATIO_AGE``. A row that is not found keeps
-max(lambda, 1) Sigma.
-
 rho is kept in [``RATIO_MIN``, 0.999]. The constants were fitted together (a
 one-off random search over the band counts, not part of the project) on the
 synthetic scenes of seeds 1 to 5 (``condtrack synth`` at their defaults, exact
@@ -145,55 +133,28 @@ FORGET = 0.5
 #: the filter's own max(lambda, 1) Sigma gets min(CORE_GAIN lambda_p^CORE_POWER, CORE_MAX), lambda_p the point's own
 #: innovation consistency; the aperture offset A, the rest of D and the coasting C get constant ratios.
 #: Fitted together on the synthetic scenes of seeds 1 to 5 and the seven shared real sets as a whole.
-CORE_GAIN = 0.668
-CORE_POWER = 0.168
-CORE_MAX = 0.447
+CORE_GAIN = 0.32
+CORE_POWER = 0.17
+CORE_MAX = 0.8
 RATIO_APERTURE = 1.0
-RATIO_DRIFT = 0.00224
-RATIO_COAST = 0.140
-#: The age term's ratio (module docstring, "Age since the query").
-RATIO_AGE = 0.296
+RATIO_DRIFT = 0.013
+RATIO_COAST = 0.065
 #: Least ratio of a row (nu >= 2 / (1 - RATIO_MIN)).
-RATIO_MIN = 0.00263
-
-#: The filter's own term of a found row, max(lambda, 1) Sigma max(lambda_p, CONSISTENCY_FLOOR)^CONSISTENCY_POWER
-#: (OWN_GAIN + AGE_GAIN t^AGE_POWER max(m, INNOVATION_FLOOR)^INNOVATION_POWER), t the frames since the query, m the
-#: point's mean squared innovation over them (px^2; module docstring, "Age since the query"). Fitted with the ratios.
-OWN_GAIN = 1.03
-AGE_GAIN = 0.0311
-AGE_POWER = 1.28
-INNOVATION_POWER = 0.368
-INNOVATION_FLOOR = 3.96e-4
-CONSISTENCY_POWER = 0.155
-CONSISTENCY_FLOOR = 3.13e-4
+RATIO_MIN = 0.011
 
 #: Pseudo-count of the pooled lambda in each point's own lambda_p (found frames, forgotten as the pooled sums).
 POINT_PRIOR = 1.0
 
 
 def scale_ratio(own: np.ndarray, aperture: np.ndarray, drift: np.ndarray, coast: np.ndarray,
-                consistency: np.ndarray, aged: np.ndarray | float = 0.0) -> np.ndarray:
+                consistency: np.ndarray) -> np.ndarray:
     """(n,) rho = tr(Student-t scale) / tr(covariance) of rows whose reported covariance is the sum of the traces
-    ``own`` (the filter's, lambda-scaled, without its age term), ``aperture`` (A), ``drift`` (D - A), ``coast`` (C)
-    and ``aged`` (the age term of a found row; 0 elsewhere), all (n,) px^2, for points of innovation consistency
-    ``consistency`` (n,) lambda_p; in (0, 1)."""
+    ``own`` (the filter's, lambda-scaled), ``aperture`` (A), ``drift`` (D - A) and ``coast`` (C), all (n,) px^2,
+    for points of innovation consistency ``consistency`` (n,) lambda_p; in (0, 1)."""
     core = np.minimum(CORE_GAIN * np.maximum(consistency, 0.0) ** CORE_POWER, CORE_MAX)
-    total = own + aged + aperture + drift + coast
-    scale = core * own + RATIO_AGE * aged + RATIO_APERTURE * aperture + RATIO_DRIFT * drift + RATIO_COAST * coast
+    total = own + aperture + drift + coast
+    scale = core * own + RATIO_APERTURE * aperture + RATIO_DRIFT * drift + RATIO_COAST * coast
     return np.clip(scale / np.where(total > 0, total, np.inf), RATIO_MIN, 0.999)
-
-
-def age_gains(consistency: np.ndarray, age: np.ndarray, innovation: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(n,) factors (own, aged) of a found row's max(lambda, 1) Sigma: its own term and its age term.
-
-    consistency: (n,) lambda_p; age: (n,) t, frames since the query (>= 1); innovation: (n,) m, the point's
-    squared innovations |nu|^2 summed over them divided by t (px^2). The own term is
-    OWN_GAIN c, the age term AGE_GAIN t^AGE_POWER max(m, INNOVATION_FLOOR)^INNOVATION_POWER c,
-    c = max(lambda_p, CONSISTENCY_FLOOR)^CONSISTENCY_POWER (module docstring, "Age since the query").
-    """
-    c = np.maximum(consistency, CONSISTENCY_FLOOR) ** CONSISTENCY_POWER
-    aged = AGE_GAIN * age**AGE_POWER * np.maximum(innovation, INNOVATION_FLOOR) ** INNOVATION_POWER
-    return OWN_GAIN * c, aged * c
 
 
 def tail_dof(ratio: np.ndarray) -> np.ndarray:
@@ -217,11 +178,6 @@ class ErrorModel:
         self._nis = np.zeros(2)  #: forgotten sums of NIS and of the count of found points
         self._miss = np.zeros(2)  #: forgotten sums of |nu|^2 and of the count
         self._point_nis = np.zeros((n_points, 2))  #: each point's forgotten sums of NIS and of its found frames
-        self.age = np.zeros(n_points)  #: t, frames since the point's query (its steps)
-        self.innovation = np.zeros(n_points)  #: sum of |nu|^2 over the point's found frames since its query, px^2
-        #: the factor of the filter's max(lambda, 1) Sigma in the reported covariance's own term on the last step
-        #: (``age_gains``' own factor on a found row, 1 elsewhere)
-        self.own_gain = np.ones(n_points)
 
     @property
     def scale(self) -> float:
@@ -250,22 +206,16 @@ class ErrorModel:
         self._point_nis[index] = 0.0
         self.coasted[index] = 0
         self.detour[index] = 0.0
-        self.age[index] = 0
-        self.innovation[index] = 0.0
-        self.own_gain[index] = 1.0
         self._report(index, sigma, self.drift[index], np.zeros_like(self.drift[index]))
 
-    def _report(self, index: np.ndarray, own: np.ndarray, drift: np.ndarray, coast: np.ndarray,
-                aged: np.ndarray | None = None) -> None:
-        """Reported covariance of points ``index``: the filter's (n, 2, 2) ``own`` plus the (n, 2, 2) ``drift`` D,
-        ``coast`` C and ``aged`` (the age term of found rows, None: 0); and the Student-t's scale over it
-        (``scale_ratio``), A taken as the part of D it still is."""
-        aged = np.zeros_like(own) if aged is None else aged
-        self.reported[index] = (own + aged) + (drift + coast)
-        own, aged, drift, coast, offset = (np.trace(m, axis1=1, axis2=2)
-                                           for m in (own, aged, drift, coast, self.aperture_offset[index]))
+    def _report(self, index: np.ndarray, own: np.ndarray, drift: np.ndarray, coast: np.ndarray) -> None:
+        """Reported covariance of points ``index``: the filter's (n, 2, 2) ``own`` plus the (n, 2, 2) ``drift`` D and
+        ``coast`` C; and the Student-t's scale over it (``scale_ratio``), A taken as the part of D it still is."""
+        self.reported[index] = own + (drift + coast)
+        own, drift, coast, offset = (np.trace(m, axis1=1, axis2=2)
+                                     for m in (own, drift, coast, self.aperture_offset[index]))
         aperture = np.minimum(offset, drift)
-        self.ratio[index] = scale_ratio(own, aperture, drift - aperture, coast, self.consistency[index], aged)
+        self.ratio[index] = scale_ratio(own, aperture, drift - aperture, coast, self.consistency[index])
 
     @property
     def dof(self) -> np.ndarray:
@@ -303,8 +253,6 @@ class ErrorModel:
             self._nis += (nis.sum(), nis.size)
             self._point_nis[index[found]] += np.column_stack([nis, np.ones_like(nis)])
             self._miss += ((nu * nu).sum(), nu.shape[0])
-            self.innovation[index[found]] += (nu * nu).sum(axis=1)
-        self.age[index] += 1
         lam = self.scale
         # Where the patch may be before this frame's match (lambda s_pred holds this frame's one-step miss; the
         # disagreement of the two motions over this frame adds to that of the frames coasted).
@@ -327,10 +275,5 @@ class ErrorModel:
         self.coasted[index] = np.where(found, 0, self.coasted[index] + 1)
         self.detour[index] = np.where(found[:, None], 0.0, self.detour[index] + disagreement)
         coast = self._coasting(self.coasted[index], self.detour[index])
-        age = self.age[index]
-        own_gain, age_gain = age_gains(self.consistency[index], age, self.innovation[index] / age)
-        own_gain, age_gain = np.where(found, own_gain, 1.0), np.where(found, age_gain, 0.0)
-        self.own_gain[index] = own_gain
-        self._report(index, own_gain[:, None, None] * scaled, self.drift[index], coast,
-                     age_gain[:, None, None] * scaled)
+        self._report(index, scaled, self.drift[index], coast)
         self.drift[index[retaken]] += lam * sigma[retaken]  # the new reference's offset, from the next frame on

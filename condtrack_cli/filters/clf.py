@@ -54,7 +54,7 @@ from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.calibration import ErrorModel
 from condtrack_cli.filters.reference import GatedMeasurement, ReferenceMatcher
 from condtrack_cli.filters.settings import CLFSettings, MDRSettings
-from condtrack_cli.filters.smoother import TransitionLog, error_gain, rts
+from condtrack_cli.filters.smoother import TransitionLog, error_excess, rts
 from condtrack_cli.measure.interface import Measurer
 from condtrack_cli.motion.interface import FrameMotion
 from condtrack_cli.motion.field import LocalField
@@ -147,7 +147,7 @@ class CLFTracker(MDRTracker):
         #: support of its own layer that Q_k reads while it is not found (NaN before such a step; ``note_support``)
         self.own_support = np.full(len(queries), np.nan)
         self.covering = np.zeros(len(queries), bool)  #: (P,) the next step covers these points' patches (``cover``)
-        shapes = dict(A=(2, 2), x_pred=(2,), sigma_pred=(2, 2), sigma_post=(2, 2), excess=(2, 2), own_gain=())
+        shapes = dict(A=(2, 2), x_pred=(2,), sigma_pred=(2, 2), sigma_post=(2, 2), excess=(2, 2))
         self.transitions = TransitionLog(len(queries), **shapes) if smooth else None
 
     def _start(self, index: np.ndarray, frame: Frame) -> None:
@@ -209,9 +209,7 @@ class CLFTracker(MDRTracker):
         self.errors.update(index, x_pred, sigma_pred, measured.z, measured.R_used, measured.valid, self.xy[index],
                            self.cov[index], retaken, disagreement)
         if self.transitions is not None:
-            gain = self.errors.own_gain[index]
-            self.transitions.record(frame.index, index, own_gain=gain,
-                                    excess=self.errors.reported[index] - gain[:, None, None] * self.cov[index])
+            self.transitions.record(frame.index, index, excess=self.errors.reported[index] - self.cov[index])
 
     def _choose(self, index: np.ndarray, measured: GatedMeasurement, x_global: np.ndarray, x_local: np.ndarray) -> None:
         """``select``: which motion predicts points ``index`` next frame, from this frame's miss of each.
@@ -261,11 +259,7 @@ class CLFTracker(MDRTracker):
         filtered = np.where(np.isfinite(sigma_post), sigma_post, tracks.cov)  # the query frames: the initial covariance
         xy, cov = rts(tracks.xy, filtered, x_pred, self.transitions.stacked("sigma_pred", n_frames),
                       self.transitions.stacked("A", n_frames), linked)
-        # the reported covariance plus the error model's gain times what smoothing took off the filter's (the rows no
-        # later frame reaches keep the reported one bit for bit)
-        gain = error_gain(self.transitions.stacked("own_gain", n_frames))[..., None, None]
-        cov = np.where(np.isfinite(sigma_post), tracks.cov + gain * (cov - filtered), cov)
-        return dataclasses.replace(tracks, xy=xy, cov=cov)
+        return dataclasses.replace(tracks, xy=xy, cov=cov + error_excess(self.transitions.stacked("excess", n_frames)))
 
 
 def make_mdr(settings: MDRSettings, *, queries: Queries, info: SequenceInfo, state_noise: StateNoise,

@@ -49,7 +49,7 @@ from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, matvec2, sample_g
 from condtrack_cli.filters.reference import ReferenceMatcher
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise, sum_over_particles
 from condtrack_cli.filters.settings import CNLFSettings
-from condtrack_cli.filters.smoother import TransitionLog, error_excess, error_gain, particle_smoother, weighted_moments
+from condtrack_cli.filters.smoother import TransitionLog, error_excess, particle_smoother, weighted_moments
 from condtrack_cli.frame_reports import FrameReports
 from condtrack_cli.measure.interface import Measurer
 from condtrack_cli.motion.interface import FrameMotion
@@ -164,8 +164,7 @@ class CNLFTracker(Tracker):
         self.fixed_paths: list[np.ndarray] = []  #: per frame before first_kept, (P, 2) path estimate, NaN off a lineage
         #: frame k - path_lag is fixed and dropped after frame k, unless all are wanted (stored particles, the smoother)
         self.lag = None if settings.path_lag is None or store_particles or smooth else settings.path_lag
-        self.transitions = (TransitionLog(p, log_w=(n,), mu=(n, 2), Q=(n, 2, 2), excess=(2, 2), own_gain=())
-                            if smooth else None)
+        self.transitions = TransitionLog(p, log_w=(n,), mu=(n, 2), Q=(n, 2, 2), excess=(2, 2)) if smooth else None
         #: each point's layer as last read, from before its last measurement (``_layer_motion``), and as measured
         #: then: its step (px/frame, NaN: none yet) and whether it moved with the dominant motion
         self.layer_step, self.layer_dominant = np.full((p, 2), np.nan), np.zeros(p, bool)
@@ -259,9 +258,7 @@ class CNLFTracker(Tracker):
         self.errors.update(index, gate_mean, gate_cov, measured.z, measured.R_used, measured.valid, self.xy[index],
                            self.cov[index], retaken, disagreement)
         if self.transitions is not None:
-            gain = self.errors.own_gain[index]
-            self.transitions.record(frame.index, index, own_gain=gain,
-                                    excess=self.errors.reported[index] - gain[:, None, None] * self.cov[index])
+            self.transitions.record(frame.index, index, excess=self.errors.reported[index] - self.cov[index])
 
     def _layer_displacement(self, index: np.ndarray, x: np.ndarray, fit) -> np.ndarray:
         """(n, N, 2) one-step displacement of particles x (n, N, 2) of points ``index`` by their layer's motion:
@@ -313,8 +310,7 @@ class CNLFTracker(Tracker):
             particles, self.transitions.stacked("log_w", n_frames), mu, self.transitions.stacked("Q", n_frames), linked,
         )
         on = np.isfinite(particles).all(axis=(2, 3))
-        gain = error_gain(self.transitions.stacked("own_gain", n_frames))[..., None, None]
-        cov = gain * cov + error_excess(self.transitions.stacked("excess", n_frames))
+        cov = cov + error_excess(self.transitions.stacked("excess", n_frames))
         return dataclasses.replace(
             tracks, xy=np.where(on[..., None], xy, tracks.xy), cov=np.where(on[..., None, None], cov, tracks.cov),
         )

@@ -70,21 +70,13 @@ class TransitionLog:
 
 
 def error_excess(excess: np.ndarray) -> np.ndarray:
-    """(P, F, 2, 2) what the error model (``calibration.py``) added to its gain times the filter's covariance, 0
-    where not recorded.
+    """(P, F, 2, 2) what the error model (``calibration.py``) added to the filter's covariance, 0 where not recorded.
 
     The smoothers narrow the filter's own covariance only: the later frames do not
     undo a reference patch's drift or a wrong match, so the smoothed covariance
-    is ``error_gain`` times the smoothed one plus the excess the forward pass
-    reported on the same frame (px^2).
+    keeps the excess the forward pass reported on the same frame (px^2).
     """
     return np.where(np.isnan(excess), 0.0, excess)
-
-
-def error_gain(gain: np.ndarray) -> np.ndarray:
-    """(P, F) the factor of the filter's covariance in the error model's report (``ErrorModel.own_gain``), 1 where
-    not recorded."""
-    return np.where(np.isnan(gain), 1.0, gain)
 
 
 def rts(
