@@ -6,8 +6,10 @@ Sigma_{k|k-1}; CNLF: the mixture's second moment) and R_gate the point's last
 finite R_k (the configured nominal one before the first), clamped to
 [gate_r_min, gate_r_max]. A measurement is used (and the point is visible) when
 R_k is finite and z_k lies in the gate nu^T (S_pred + R_k)^-1 nu <= gamma (§3.2),
-and its residual r_k(z_k) is at most ``foreign_residual`` times the point's usual
-one (issue 31): a match in the gate that fits the reference patch much worse than
+and its residual, read at the sub-pixel z_k (``Measurement.aligned``: a texture
+misaligned by a fraction of a pixel does not inflate it), is at most
+``foreign_residual`` times the point's usual one, itself read as at least the
+noise's m 2 sigma^2 (issue 31): a match in the gate that fits the reference patch much worse than
 the point's own matches have lies on something covering the point (an occluder
 that the gate overlaps, or that the point's gate was moved onto), and the point is
 covered there (R = inf), whatever the gate's position test says.
@@ -60,6 +62,12 @@ def searched(measure: Measurer, predicted: np.ndarray, gate_cov: np.ndarray, xy:
         return measure.searched(predicted, gate_cov, xy)
     with np.errstate(invalid="ignore"):
         return ~(kalman.mahalanobis2(xy - predicted, gate_cov) > gamma)
+
+
+def _fit(m: Measurement) -> np.ndarray:
+    """(n,) how well each match fits its reference, as the residual tests read it: the cost at the sub-pixel z_k
+    where the stage gives it (``Measurement.aligned``), else at the integer minimum."""
+    return m.residual if m.aligned is None else m.aligned
 
 
 #: Weight of a match's residual in its point's usual residual (``ReferenceMatcher.usual``): about 3 frames' memory.
@@ -132,9 +140,9 @@ class ReferenceMatcher:
         usual = self.usual[index]
         shown = valid.copy()
         if s.flat_visible_residual is not None:  # NaN residuals (no match) and usual residuals compare False
-            bound = s.flat_visible_residual * usual
+            bound = s.flat_visible_residual * self._yardstick(index)
             near = kalman.mahalanobis2(m.z - predicted, self.gate_r[index]) <= self.gamma  # NaN z: False
-            shown |= ~m.informative & near & (m.residual <= bound) & (self.flat_cost[index] > bound)
+            shown |= ~m.informative & near & (_fit(m) <= bound) & (self.flat_cost[index] > bound)
         shift = np.zeros_like(predicted)
         if s.lk_fallback and prev is not None and retry is not None:
             height, width = frame.image.shape
@@ -151,15 +159,16 @@ class ReferenceMatcher:
                 valid2 &= ~(m2.residual >= s.lk_better * m.residual[tried])
                 won = tried[valid2]
                 if won.size:
-                    m = Measurement(*(np.array(a, copy=True) for a in (m.z, m.R, m.residual, m.informative)))
+                    m = Measurement(*(np.array(a, copy=True) for a in (m.z, m.R, m.residual, m.informative, _fit(m))))
                     m.z[won], m.R[won] = m2.z[valid2], m2.R[valid2]
                     m.residual[won], m.informative[won] = m2.residual[valid2], m2.informative[valid2]
+                    m.aligned[won] = _fit(m2)[valid2]
                     r_used = r_used.copy()
                     r_used[won], valid[won], shown[won] = r2[valid2], True, True
                     shift[won] = centre[valid2] - predicted[won]
         if s.foreign_residual is not None or s.flat_visible_residual is not None:
-            self.usual[index[valid]] = np.where(np.isnan(usual[valid]), m.residual[valid],
-                                                usual[valid] + USUAL_WEIGHT * (m.residual[valid] - usual[valid]))
+            fit = _fit(m)[valid]
+            self.usual[index[valid]] = np.where(np.isnan(usual[valid]), fit, usual[valid] + USUAL_WEIGHT * (fit - usual[valid]))
         clamped = np.clip(r_used, -s.gate_r_max, s.gate_r_max)
         clamped[:, [0, 1], [0, 1]] = np.clip(r_used[:, [0, 1], [0, 1]], s.gate_r_min, s.gate_r_max)
         self.gate_r[index[valid]] = clamped[valid]
@@ -184,8 +193,13 @@ class ReferenceMatcher:
         nu = np.where(m.informative[:, None], m.z - predicted, 0.0)
         valid = m.informative & (kalman.mahalanobis2(nu, s_pred + r_used) <= self.gamma)
         if self.settings.foreign_residual is not None:
-            valid &= ~(m.residual > self.settings.foreign_residual * self.usual[index])  # False without a usual one
+            valid &= ~(_fit(m) > self.settings.foreign_residual * self._yardstick(index))  # False without a usual one
         return m, r_used, valid
+
+    def _yardstick(self, index: np.ndarray) -> np.ndarray:
+        """(n,) the residual a match of points ``index`` is compared with: their usual one, at least the noise's
+        expectation m 2 sigma^2 (m template pixels; a sub-pixel match's residual falls to it); NaN before the first."""
+        return np.maximum(self.usual[index], self.templates.shape[1] * self.templates.shape[2] * 2 * self.noise_sigma**2)
 
     def refresh(
         self, index: np.ndarray, prev: Frame, x_prev: np.ndarray, frame: Frame, x_post: np.ndarray,

@@ -30,7 +30,7 @@ class MeasuredFilterSettings(InitialStateSettings):
         0.8, gt=0, le=1, description="no refresh when more than this share of the residual appeared since the last frame"
     )
     foreign_residual: float | None = Field(
-        6.0, gt=1,
+        12.0, gt=1,
         description="a match whose residual exceeds this many times the point's usual one lies on what covers it: "
                     "not used (null: off)",
     )

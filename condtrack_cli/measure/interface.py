@@ -25,6 +25,8 @@ class Measurement:
        surface carries no information (and where z is NaN); otherwise symmetric with eigenvalues
        >= ``r_floor``.
     residual: (P,) float64 r_k(z_k), the SSD at the integer minimum (grey levels^2); NaN with z.
+    aligned: (P,) float64 or None, the matching cost at the sub-pixel z_k (bilinear; at most ``residual``), which
+       a texture's misalignment by a fraction of a pixel does not inflate; None: ``residual`` stands for it.
     informative: (P,) bool, R finite.
     """
 
@@ -32,6 +34,7 @@ class Measurement:
     R: np.ndarray
     residual: np.ndarray
     informative: np.ndarray
+    aligned: np.ndarray | None = None
 
 
 class Measurer(Protocol):

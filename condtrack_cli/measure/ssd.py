@@ -110,9 +110,9 @@ def measure(
     count = len(predicted)
     known = np.isfinite(predicted).all(axis=1)
     z, R = np.full((count, 2), np.nan), infinite_covariance(count)
-    residual, informative = np.full(count, np.nan), np.zeros(count, bool)
+    residual, informative, aligned = np.full(count, np.nan), np.zeros(count, bool), np.full(count, np.nan)
     if not known.any():
-        return Measurement(z, R, residual, informative)
+        return Measurement(z, R, residual, informative, aligned)
     half_sizes = _half_sizes(gate_cov, settings)
     if sums is None:
         sums = frame_sums(gray, settings.template, settings.cost)
@@ -120,7 +120,8 @@ def measure(
         part = _measure_group(gray, sums, templates[points], predicted[points], gate_cov[points],
                               half_sizes[points], settings, sigma)
         z[points], R[points], residual[points], informative[points] = part.z, part.R, part.residual, part.informative
-    return Measurement(z, R, residual, informative)
+        aligned[points] = part.aligned
+    return Measurement(z, R, residual, informative, aligned)
 
 
 def searched(predicted: np.ndarray, gate_cov: np.ndarray, xy: np.ndarray, settings: SSDSettings) -> np.ndarray:
@@ -194,7 +195,7 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
     residual = r_full[np.arange(count), row, col]
 
     integer = np.stack([centres[:, 0] + col - reach, centres[:, 1] + row - reach], axis=1).astype(np.float64)
-    z = refine(gray, templates, integer, settings.cost)
+    z, at_z = refine(gray, templates, integer, settings.cost)
 
     offsets = np.arange(-half, half + 1)
     rows, cols = (row[:, None] + offsets)[:, :, None], (col[:, None] + offsets)[:, None, :]
@@ -227,7 +228,8 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
     informative = found & informative & at_minimum & ~second
     R = np.where(informative[:, None, None], R, infinite_covariance(count))
     return Measurement(
-        z=np.where(found[:, None], z, np.nan), R=R, residual=np.where(found, residual, np.nan), informative=informative
+        z=np.where(found[:, None], z, np.nan), R=R, residual=np.where(found, residual, np.nan), informative=informative,
+        aligned=np.where(found, np.minimum(residual, at_z), np.nan),
     )
 
 

@@ -178,8 +178,9 @@ def _shift(window: np.ndarray, offset: np.ndarray) -> np.ndarray:
     return _towards(rows[:, 1:-1], rows[:, 2:], rows[:, :-2], fy)
 
 
-def refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str = "ssd") -> np.ndarray:
-    """(P, 2) sub-pixel z_k: the continuous minimum of eq. (6) within +-0.5 px of the integer minimum ``start``.
+def refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str = "ssd") -> tuple[np.ndarray, np.ndarray]:
+    """(P, 2) sub-pixel z_k: the continuous minimum of eq. (6) within +-0.5 px of the integer minimum ``start``,
+    and (P,) r(z_k), the cost there (grey levels^2).
 
     start: (P, 2) integer-valued positions (px). Gauss-Newton on r(z) = sum_y [T(y) - I_k(z + y)]^2
     with I_k bilinear (border replicated) and its gradient by central differences, ``_REFINE_STEPS``
@@ -216,4 +217,18 @@ def refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str
         det = a * c - b * b
         step = np.stack([c * ex - b * ey, a * ey - b * ex], axis=1) / det[:, None]
         offset = np.clip(offset + step, -0.5, 0.5)
-    return start + offset
+    return start + offset, _cost_at(window, offset, reference, cost, energy if cost == "normalised" else None)
+
+
+def _cost_at(window: np.ndarray, offset: np.ndarray, reference: np.ndarray, cost: str,
+             energy: np.ndarray | None) -> np.ndarray:
+    """(P,) ``refine``'s cost of the (P, t, t) float64 ``reference`` (mean-free unless ``cost`` is ssd) against the
+    frame ``window`` (P, t + 4, t + 4) moved by (P, 2) ``offset`` (bilinear)."""
+    moved = _shift(window, offset)[:, 1:-1, 1:-1]
+    if cost != "ssd":
+        moved = moved - moved.mean(axis=(1, 2), keepdims=True)
+        if cost == "normalised":
+            spread = (moved * moved).sum(axis=(1, 2))
+            moved = moved * np.sqrt(energy / np.where(spread > 0, spread, np.inf))[:, None, None]
+    error = reference - moved
+    return (error * error).sum(axis=(1, 2))
