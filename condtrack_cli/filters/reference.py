@@ -149,30 +149,43 @@ class ReferenceMatcher:
             inside = (predicted >= 0).all(axis=1) & (predicted[:, 0] <= width - 1) & (predicted[:, 1] <= height - 1)
             tried = np.flatnonzero(retry & ~shown & np.isfinite(x_prev).all(axis=1) & inside)
             if tried.size:
-                centre, ok = lk_centres(self._half(prev), self._half(frame), x_prev[tried])
-                ok &= ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
-                                self.gamma)  # else that centre's match was already in the gate
-                tried, centre = tried[ok], centre[ok]
-            if tried.size:
-                m2, r2, valid2 = self._gated(index[tried], frame, centre, s_pred[tried])
-                # and it must fit the reference clearly better than the best match around the prediction (none: NaN)
-                valid2 &= ~(m2.residual >= s.lk_better * m.residual[tried])
-                won = tried[valid2]
-                if won.size:
-                    m = Measurement(*(np.array(a, copy=True) for a in (m.z, m.R, m.residual, m.informative, _fit(m))))
-                    m.z[won], m.R[won] = m2.z[valid2], m2.R[valid2]
-                    m.residual[won], m.informative[won] = m2.residual[valid2], m2.informative[valid2]
-                    m.aligned[won] = _fit(m2)[valid2]
-                    r_used = r_used.copy()
-                    r_used[won], valid[won], shown[won] = r2[valid2], True, True
-                    shift[won] = centre[valid2] - predicted[won]
+                m, r_used = self._fallback(index, tried, frame, prev, x_prev, predicted, s_pred, m, r_used, valid,
+                                           shown, shift)
         if s.foreign_residual is not None or s.flat_visible_residual is not None:
             fit = _fit(m)[valid]
-            self.usual[index[valid]] = np.where(np.isnan(usual[valid]), fit, usual[valid] + USUAL_WEIGHT * (fit - usual[valid]))
+            self.usual[index[valid]] = np.where(np.isnan(usual[valid]), fit,
+                                                usual[valid] + USUAL_WEIGHT * (fit - usual[valid]))
         clamped = np.clip(r_used, -s.gate_r_max, s.gate_r_max)
         clamped[:, [0, 1], [0, 1]] = np.clip(r_used[:, [0, 1], [0, 1]], s.gate_r_min, s.gate_r_max)
         self.gate_r[index[valid]] = clamped[valid]
         return GatedMeasurement(m.z, m.R, r_used, valid, m.residual, shown, shift)
+
+    def _fallback(self, index: np.ndarray, tried: np.ndarray, frame: Frame, prev: Frame, x_prev: np.ndarray,
+                  predicted: np.ndarray, s_pred: np.ndarray, m: Measurement, r_used: np.ndarray, valid: np.ndarray,
+                  shown: np.ndarray, shift: np.ndarray) -> tuple[Measurement, np.ndarray]:
+        """``measure_in_gate``'s Lucas-Kanade fallback for the points ``tried`` (indices into ``index``): the
+        measurement ``m`` and (n, 2, 2) ``r_used`` with the matches won around LK's centres (new arrays where any
+        is won); (n,) ``valid``, ``shown`` and (n, 2) ``shift`` are updated in place."""
+        centre, ok = lk_centres(self._half(prev), self._half(frame), x_prev[tried])
+        ok &= ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
+                        self.gamma)  # else that centre's match was already in the gate
+        tried, centre = tried[ok], centre[ok]
+        if not tried.size:
+            return m, r_used
+        m2, r2, valid2 = self._gated(index[tried], frame, centre, s_pred[tried])
+        # and it must fit the reference clearly better than the best match around the prediction (none: NaN)
+        valid2 &= ~(m2.residual >= self.settings.lk_better * m.residual[tried])
+        won = tried[valid2]
+        if not won.size:
+            return m, r_used
+        m = Measurement(*(np.array(a, copy=True) for a in (m.z, m.R, m.residual, m.informative, _fit(m))))
+        m.z[won], m.R[won] = m2.z[valid2], m2.R[valid2]
+        m.residual[won], m.informative[won] = m2.residual[valid2], m2.informative[valid2]
+        m.aligned[won] = _fit(m2)[valid2]
+        r_used = r_used.copy()
+        r_used[won], valid[won], shown[won] = r2[valid2], True, True
+        shift[won] = centre[valid2] - predicted[won]
+        return m, r_used
 
     def _half(self, frame: Frame) -> np.ndarray:
         """``frame``'s image at half resolution (``cv2.pyrDown``), kept for the last two frames asked (a frame is
@@ -199,7 +212,11 @@ class ReferenceMatcher:
     def _yardstick(self, index: np.ndarray) -> np.ndarray:
         """(n,) the residual a match of points ``index`` is compared with: their usual one, at least the noise's
         expectation m 2 sigma^2 (m template pixels; a sub-pixel match's residual falls to it); NaN before the first."""
-        return np.maximum(self.usual[index], self.templates.shape[1] * self.templates.shape[2] * 2 * self.noise_sigma**2)
+        return np.maximum(self.usual[index], self._noise_ssd())
+
+    def _noise_ssd(self) -> float:
+        """m 2 sigma^2: the SSD two patches of m template pixels show from the acquisition noise (sigma) alone."""
+        return self.templates.shape[1] * self.templates.shape[2] * 2 * self.noise_sigma**2
 
     def refresh(
         self, index: np.ndarray, prev: Frame, x_prev: np.ndarray, frame: Frame, x_post: np.ndarray,
@@ -223,8 +240,8 @@ class ReferenceMatcher:
         retaken = np.zeros(len(index), bool)
         if not s.reference_update:
             return retaken
-        noise_ssd = self.templates.shape[1] * self.templates.shape[2] * 2 * self.noise_sigma**2
-        candidates = np.flatnonzero(measured.valid & found_before & (measured.residual > s.update_residual * noise_ssd))
+        candidates = np.flatnonzero(measured.valid & found_before
+                                    & (measured.residual > s.update_residual * self._noise_ssd()))
         if not candidates.size:
             return retaken
         patches = self.measure.templates(frame.gray, x_post[candidates])
