@@ -194,19 +194,14 @@ def refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str
     # I_k at start + [-t//2 - 2, t//2 + 2]^2: frame pixels (start is integer), clamped into the frame
     window = _windows(gray, start.astype(np.intp), t // 2 + 2).astype(np.float64)
     reference = templates.astype(np.float64)
+    energy = None
     if cost != "ssd":
         reference = reference - reference.mean(axis=(1, 2), keepdims=True)
         energy = (reference * reference).sum(axis=(1, 2))
     offset = np.zeros(start.shape)
     for step in range(_REFINE_STEPS):
         # I_k at z + [-t//2 - 1, t//2 + 1]^2; at the first step z = start, the window's inner pixels
-        moved = _shift(window, offset) if step else window[:, 1:-1, 1:-1].copy()
-        if cost != "ssd":
-            moved -= moved[:, 1:-1, 1:-1].mean(axis=(1, 2), keepdims=True)
-            if cost == "normalised":
-                centred = moved[:, 1:-1, 1:-1]
-                spread = (centred * centred).sum(axis=(1, 2))
-                moved *= np.sqrt(energy / np.where(spread > 0, spread, np.inf))[:, None, None]
+        moved = _matched(_shift(window, offset) if step else window[:, 1:-1, 1:-1].copy(), cost, energy)
         gx = (moved[:, 1:-1, 2:] - moved[:, 1:-1, :-2]) / 2.0
         gy = (moved[:, 2:, 1:-1] - moved[:, :-2, 1:-1]) / 2.0
         error = reference - moved[:, 1:-1, 1:-1]
@@ -217,18 +212,18 @@ def refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str
         det = a * c - b * b
         step = np.stack([c * ex - b * ey, a * ey - b * ex], axis=1) / det[:, None]
         offset = np.clip(offset + step, -0.5, 0.5)
-    return start + offset, _cost_at(window, offset, reference, cost, energy if cost == "normalised" else None)
+    error = reference - _matched(_shift(window, offset), cost, energy)[:, 1:-1, 1:-1]  # the cost at z_k itself
+    return start + offset, (error * error).sum(axis=(1, 2))
 
 
-def _cost_at(window: np.ndarray, offset: np.ndarray, reference: np.ndarray, cost: str,
-             energy: np.ndarray | None) -> np.ndarray:
-    """(P,) ``refine``'s cost of the (P, t, t) float64 ``reference`` (mean-free unless ``cost`` is ssd) against the
-    frame ``window`` (P, t + 4, t + 4) moved by (P, 2) ``offset`` (bilinear)."""
-    moved = _shift(window, offset)[:, 1:-1, 1:-1]
+def _matched(moved: np.ndarray, cost: str, energy: np.ndarray | None) -> np.ndarray:
+    """(P, t + 2, t + 2) frame windows ``moved`` (float64, modified in place) as ``cost`` compares them with the
+    reference: as they are (ssd), less the mean of their inner t x t pixels, and (normalised) scaled to the
+    reference's (P,) mean-free ``energy`` over them."""
     if cost != "ssd":
-        moved = moved - moved.mean(axis=(1, 2), keepdims=True)
+        moved -= moved[:, 1:-1, 1:-1].mean(axis=(1, 2), keepdims=True)
         if cost == "normalised":
-            spread = (moved * moved).sum(axis=(1, 2))
-            moved = moved * np.sqrt(energy / np.where(spread > 0, spread, np.inf))[:, None, None]
-    error = reference - moved
-    return (error * error).sum(axis=(1, 2))
+            centred = moved[:, 1:-1, 1:-1]
+            spread = (centred * centred).sum(axis=(1, 2))
+            moved *= np.sqrt(energy / np.where(spread > 0, spread, np.inf))[:, None, None]
+    return moved
