@@ -205,7 +205,7 @@ class CLFTracker(MDRTracker):
         self.xy[index], self.cov[index] = kalman.update(x_pred, sigma_pred, measured.z, measured.R_used, measured.valid)
         if self.transitions is not None:  # the filtered covariance (the reported one is the error model's)
             self.transitions.record(frame.index, index, sigma_post=self.cov[index])
-        self.visible[index], self.seen_unmeasured[index] = measured.valid, measured.shown & ~measured.valid
+        self.visible[index], self.seen_unmeasured[index] = measured.valid, measured.seen_unmeasured
         self.z[index], self.R[index] = measured.z, measured.R
         retaken = self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
         disagreement = x_local - x_global if self.needs_local_motion else np.zeros_like(x_global)

@@ -252,7 +252,7 @@ class CNLFTracker(Tracker):
         self.ancestors = (index[resampled], picks)
         self.particles[index], self.log_w[index] = particles, log_w
         self._report(index, particles, log_w)
-        self.visible[index], self.seen_unmeasured[index] = measured.valid, measured.shown & ~measured.valid
+        self.visible[index], self.seen_unmeasured[index] = measured.valid, measured.seen_unmeasured
         self.z[index], self.R[index] = measured.z, measured.R
         retaken = self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
         disagreement = field.displacement(x_prev) - displacement(motion.global_fit, x_prev)

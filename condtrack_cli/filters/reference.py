@@ -89,6 +89,11 @@ class GatedMeasurement:
     shown: np.ndarray
     shift: np.ndarray  #: (n, 2) the move of the prediction to the fallback gate centre (0: none)
 
+    @property
+    def seen_unmeasured(self) -> np.ndarray:
+        """(n,) bool: shown but not used (``Tracker.seen_unmeasured``)."""
+        return self.shown & ~self.valid
+
 
 class ReferenceMatcher:
     """Reference patches of P points and their gated measurement (paper §5.2, §3.2)."""
@@ -132,8 +137,8 @@ class ReferenceMatcher:
         (:func:`searched`), with the same covariance and the same tests, and used only if its residual is below
         ``lk_better`` times the best one of the gate around the prediction. Where that match is used, the
         prediction is moved to that centre: ``shift`` (n, 2), the displacement the filter adds to its prediction
-        (0 elsewhere). On KITTI seq005 (290 points, 22 frame pairs, ``auto``) about 220 points are tried and 6
-        matches won; on the card scene's entry, the card's points lost by the local field.
+        (0 elsewhere). It wins few matches on KITTI (docs/departures.md) and, on the card scene's entry, the card's
+        points that the local field loses.
         """
         m, r_used, valid = self._gated(index, frame, predicted, s_pred)
         s = self.settings

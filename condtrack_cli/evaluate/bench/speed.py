@@ -117,8 +117,8 @@ def speed_table(work: Path, shared: Path, repeats: int = 3, threads: int | None 
     ]
     for title, folder, queries in speed_scenes(work, shared):
         spans = np.loadtxt(queries, delimiter=",", skiprows=1, ndmin=2)[:, 1].max() > 0
-        ahead = tuple(m + FORWARD_ONLY for m in SPEED_METHODS) if spans else ()
-        methods = ("opencv-lk",) + SPEED_METHODS + ahead + paper
+        forward_only = tuple(m + FORWARD_ONLY for m in SPEED_METHODS) if spans else ()
+        methods = ("opencv-lk",) + SPEED_METHODS + forward_only + paper
         times, peaks, failed = {m: [] for m in methods}, {m: 0.0 for m in methods}, {}
         for _ in range(repeats):
             for method in methods:
