@@ -1,4 +1,4 @@
-"""The Lucas-Kanade fallback gate centre (``lk_fallback``), ``filters/reference.py``; issue 31 (the visibility of a
+"""The fallback gate centres (``lk_fallback``: Lucas-Kanade, then the last measured step), ``filters/reference.py``; issue 31 (the visibility of a
 point too flat to measure, ``flat_visible_residual``: tests/test_clf.py).
 
 Known truth: frame 1 is frame 0 (a photograph, with noise) moved by (27, -19) px, a jump far beyond the
@@ -89,3 +89,42 @@ def test_searched_is_the_measurement_gate():
     np.testing.assert_array_equal(searched(predicted, cov, xy, settings), [True, False, False, False])
     np.testing.assert_array_equal(searched(predicted, cov, predicted + [[3.0, 0.0], [0, 0], [15.0, 0], [14.0, 0]],
                                            settings), [True, True, True, True])
+
+
+def test_where_lucas_kanade_fails_the_last_measured_step_is_the_next_centre(monkeypatch):
+    """With Lucas-Kanade failing everywhere (its status false, as where an object's edge fills its window), a point
+    whose last measured step is JUMP is found around x_prev + JUMP, the prediction moved there; a point with no
+    measured step (NaN: not found on two frames running) is not found."""
+    from condtrack_cli.filters import reference as module
+
+    monkeypatch.setattr(module, "lk_centres", lambda prev, cur, xy: (xy, np.zeros(len(xy), bool)))
+    frame0, frame1, xy = _jump_frames()
+    measure = SSDMeasure(SSDSettings())
+    matcher = ReferenceMatcher(measure, MeasuredFilterSettings(), len(xy), 9.21)
+    index = np.arange(len(xy))
+    matcher.start(index, frame0, xy)
+    stepped = index % 2 == 0
+    matcher.step[stepped] = JUMP
+    measured = matcher.measure_in_gate(index, frame1, xy, np.repeat(np.eye(2)[None], len(xy), 0), frame0, xy,
+                                       np.ones(len(xy), bool))
+    xy, oracle = _match(False, predicted_step=JUMP)
+    np.testing.assert_array_equal(measured.valid[stepped], oracle.valid[stepped])
+    np.testing.assert_allclose(measured.z[measured.valid], (xy + JUMP)[measured.valid], atol=0.25)
+    np.testing.assert_array_equal(measured.shift[measured.valid], np.broadcast_to(JUMP, xy.shape)[measured.valid])
+    assert not np.any(measured.valid[~stepped] & (np.linalg.norm(measured.z[~stepped] - (xy + JUMP)[~stepped],
+                                                                  axis=1) < 2.0))
+
+
+def test_the_reference_records_the_step_of_points_found_on_both_frames():
+    """``refresh`` keeps x_post - x_prev as the step of the points found before and now, NaN for the others."""
+    frame0, frame1, xy = _jump_frames()
+    _, measured = _match(True)
+    matcher = ReferenceMatcher(SSDMeasure(SSDSettings()), MeasuredFilterSettings(), len(xy), 9.21)
+    index = np.arange(len(xy))
+    matcher.start(index, frame0, xy)
+    found_before = index % 3 != 0
+    matcher.refresh(index, frame0, xy, frame1, xy + JUMP, found_before, measured)
+    both = found_before & measured.valid
+    assert both.sum() >= 5
+    np.testing.assert_array_equal(matcher.step[both], np.broadcast_to(JUMP, xy.shape)[both])
+    assert np.isnan(matcher.step[~both]).all()

@@ -18,13 +18,16 @@ A point is reported visible where its measurement is used, and also where its
 surface is too flat to measure (R = inf: a weak texture under noise, an edge)
 but its best match lies where its last R_k allows from the prediction (the gate's
 gamma), fits its reference within ``flat_visible_residual`` times its usual
-residual, and a flat patch would not (``shown``, issue 31): such a point is not
+residual, and a flat patch would not (``shown``, issue 31); or, where that best
+match lies farther, when the patch at the prediction itself fits within the same
+bound (a flat surface's minimum wanders along its flat direction, the point is
+where it was predicted): such a point is not
 covered, only not measurable on this frame. A covered point's best match in its
 wide gate lies pixels away; the flat-patch test keeps a weak reference, which a
 flat part of an occluder fits about as well as its own neighbourhood, from being
 shown through it. The filter's state does not see this: the measurement is not
 used, and the point counts as not found for every other rule, but for the
-Lucas-Kanade fallback (``measure_in_gate``), which does not search again for a
+fallback gate centres (``measure_in_gate``), which do not search again for a
 point shown.
 """
 
@@ -43,12 +46,13 @@ from condtrack_cli.types import Frame
 
 def lk_centres(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(n, 2) positions in frame ``cur`` of (n, 2) points ``xy`` of frame ``prev`` by OpenCV's pyramidal Lucas-Kanade
-    on the frames at half resolution (``cv2.pyrDown``; a 15 px window, maxLevel 2: about the reach of the STK baseline's
-    21 px window at maxLevel 3 on the full frames, at a third of its cost), and (n,) bool: found (LK's status, a finite
-    position)."""
+    on the frames at half resolution (``cv2.pyrDown``; a 13 px window, maxLevel 3: about the reach of the STK
+    baseline's 21 px window at maxLevel 3 on the full frames, twice that of the 15 px window at maxLevel 2 of
+    before, with a window that spans less of a moving object's edge; docs/departures.md), and (n,) bool: found
+    (LK's status, a finite position)."""
     half = (np.asarray(xy, np.float64) / 2).astype(np.float32).reshape(-1, 1, 2)  # pyrDown's (i, j): the frame's (2i, 2j)
     moved, status, _ = cv2.calcOpticalFlowPyrLK(  # the STK baseline's criteria (``filters/stk.py``)
-        prev, cur, half, None, winSize=(15, 15), maxLevel=2,
+        prev, cur, half, None, winSize=(13, 13), maxLevel=3,
         criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01), minEigThreshold=1e-4,
     )
     moved, ok = moved.reshape(-1, 2).astype(np.float64), status.reshape(-1).astype(bool)
@@ -110,6 +114,8 @@ class ReferenceMatcher:
         self.usual = np.full(n_points, np.nan)
         #: (P,) the matching cost of each reference patch against a flat patch at its mean (grey levels^2)
         self.flat_cost = np.full(n_points, np.nan)
+        #: (P, 2) each point's last step between two frames it was found on (px/frame; NaN: not found on both)
+        self.step = np.full((n_points, 2), np.nan)
         self._halves: list[tuple[np.ndarray, np.ndarray]] = []  #: (image, its half-resolution image) of recent frames
 
     def start(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> None:
@@ -118,6 +124,7 @@ class ReferenceMatcher:
             self.noise_sigma = self.measure.noise_sigma(frame.gray)
         self._take(index, self.measure.templates(frame.gray, xy))
         self.usual[index] = np.nan
+        self.step[index] = np.nan
 
     def _take(self, index: np.ndarray, patches: np.ndarray) -> None:
         """Points ``index`` take the (n, t, t) ``patches`` as their reference; their ``flat_cost`` with them."""
@@ -132,13 +139,13 @@ class ReferenceMatcher:
 
         With ``lk_fallback`` and the previous frame ``prev``, the points of (n,) bool ``retry`` (found on ``prev``
         at (n, 2) ``x_prev``) whose match is not used, and not shown (module docstring: the point is there, its
-        surface flat), are matched once more around a second gate centre: where pyramidal Lucas-Kanade moves them
-        from ``x_prev`` (:func:`lk_centres`), when that centre lies outside the gate just searched
-        (:func:`searched`), with the same covariance and the same tests, and used only if its residual is below
-        ``lk_better`` times the best one of the gate around the prediction. Where that match is used, the
-        prediction is moved to that centre: ``shift`` (n, 2), the displacement the filter adds to its prediction
-        (0 elsewhere). It wins few matches on KITTI (docs/departures.md) and, on the card scene's entry, the card's
-        points that the local field loses.
+        surface flat), are matched again around other gate centres, in turn (:meth:`_fallback`): where pyramidal
+        Lucas-Kanade moves them from ``x_prev`` (:func:`lk_centres`), then where their last measured step carries
+        them (``step``), each when it lies outside the gate just searched (:func:`searched`), with the same
+        covariance and the same tests, and used only if its residual is below ``lk_better`` times the best one of
+        the gate around the prediction. Where that match is used, the prediction is moved to that centre:
+        ``shift`` (n, 2), the displacement the filter adds to its prediction (0 elsewhere). They win few matches on
+        KITTI (docs/departures.md) and, on the card scene's entry, the card's points that the local field loses.
         """
         m, r_used, valid = self._gated(index, frame, predicted, s_pred)
         s = self.settings
@@ -147,7 +154,12 @@ class ReferenceMatcher:
         if s.flat_visible_residual is not None:  # NaN residuals (no match) and usual residuals compare False
             bound = s.flat_visible_residual * self._yardstick(index)
             near = kalman.mahalanobis2(m.z - predicted, self.gate_r[index]) <= self.gamma  # NaN z: False
-            shown |= ~m.informative & near & (_fit(m) <= bound) & (self.flat_cost[index] > bound)
+            textured = self.flat_cost[index] > bound
+            shown |= ~m.informative & near & (_fit(m) <= bound) & textured
+            flat = np.flatnonzero(~m.informative & ~shown & textured)
+            if flat.size:
+                at_prediction = self.measure.templates(frame.gray, predicted[flat])
+                shown[flat] = self.measure.cost(self.templates[index[flat]], at_prediction) <= bound[flat]
         shift = np.zeros_like(predicted)
         if s.lk_fallback and prev is not None and retry is not None:
             height, width = frame.image.shape
@@ -168,12 +180,29 @@ class ReferenceMatcher:
     def _fallback(self, index: np.ndarray, tried: np.ndarray, frame: Frame, prev: Frame, x_prev: np.ndarray,
                   predicted: np.ndarray, s_pred: np.ndarray, m: Measurement, r_used: np.ndarray, valid: np.ndarray,
                   shown: np.ndarray, shift: np.ndarray) -> tuple[Measurement, np.ndarray]:
-        """``measure_in_gate``'s Lucas-Kanade fallback for the points ``tried`` (indices into ``index``): the
-        measurement ``m`` and (n, 2, 2) ``r_used`` with the matches won around LK's centres (new arrays where any
-        is won); (n,) ``valid``, ``shown`` and (n, 2) ``shift`` are updated in place."""
-        centre, ok = lk_centres(self._half(prev), self._half(frame), x_prev[tried])
-        ok &= ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
-                        self.gamma)  # else that centre's match was already in the gate
+        """``measure_in_gate``'s fallback for the points ``tried`` (indices into ``index``): the measurement ``m``
+        and (n, 2, 2) ``r_used`` with the matches won around the fallback centres (new arrays where any is won);
+        (n,) ``valid``, ``shown`` and (n, 2) ``shift`` are updated in place.
+
+        The centres, each tried on the points that the ones before did not win: where Lucas-Kanade moves the
+        point from ``x_prev`` (:func:`lk_centres`), then ``x_prev`` plus the point's last measured step
+        (``step``; a constant velocity: an object that entered the frame at 40-50 px a frame and goes on, which
+        neither the local field nor Lucas-Kanade follows where the object's edge fills the window).
+        """
+        lk, lk_found = lk_centres(self._half(prev), self._half(frame), x_prev[tried])
+        constant_step = x_prev[tried] + self.step[index[tried]]
+        for centre, usable in ((lk, lk_found), (constant_step, np.isfinite(constant_step).all(axis=1))):
+            usable &= ~shown[tried]  # not won by an earlier centre
+            m, r_used = self._match_around(index, tried[usable], centre[usable], frame, predicted, s_pred, m,
+                                           r_used, valid, shown, shift)
+        return m, r_used
+
+    def _match_around(self, index: np.ndarray, tried: np.ndarray, centre: np.ndarray, frame: Frame,
+                      predicted: np.ndarray, s_pred: np.ndarray, m: Measurement, r_used: np.ndarray,
+                      valid: np.ndarray, shown: np.ndarray, shift: np.ndarray) -> tuple[Measurement, np.ndarray]:
+        """:meth:`_fallback` around one (n, 2) ``centre`` per point of ``tried``; returns and updates as it does."""
+        ok = ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
+                       self.gamma)  # else that centre's match was already in the gate
         tried, centre = tried[ok], centre[ok]
         if not tried.size:
             return m, r_used
@@ -240,8 +269,11 @@ class ReferenceMatcher:
         last frame. An occluder edge creeping over a clean patch makes nearly the
         whole residual appear in one frame and fails (3); a whole occluder fails
         (1). x_prev, x_post: (n, 2); found_before: (n,) bool. Returns (n,) bool: re-taken.
+        Also records each point's ``step`` x_post - x_prev where it was found on both frames (NaN elsewhere),
+        the fallback's constant-step centre.
         """
         s = self.settings
+        self.step[index] = np.where((found_before & measured.valid)[:, None], x_post - x_prev, np.nan)
         retaken = np.zeros(len(index), bool)
         if not s.reference_update:
             return retaken

@@ -36,20 +36,21 @@ class MeasuredFilterSettings(InitialStateSettings):
     )
     lk_fallback: bool = Field(
         True,
-        description="a point found on the previous frame whose match is not used is matched once more around where "
-                    "pyramidal Lucas-Kanade moves it, with the same tests (false: the gate around the prediction only, "
-                    "the paper's)",
+        description="a point found on the previous frame whose match is not used is matched again around where "
+                    "pyramidal Lucas-Kanade moves it, then where its last measured step carries it, with the same "
+                    "tests (false: the gate around the prediction only, the paper's)",
     )
     lk_better: float = Field(
         0.5, gt=0,
-        description="lk_fallback: the match around the Lucas-Kanade centre is used only where its residual is below "
+        description="lk_fallback: a match around a fallback centre is used only where its residual is below "
                     "this share of the best residual in the gate around the prediction",
     )
     flat_visible_residual: float | None = Field(
         2.5, gt=1,
         description="a point whose correlation surface is too flat to measure (R = inf) is still reported visible "
-                    "when its best match fits its reference within this many times its usual residual; the "
-                    "measurement is not used either way (null: reported not visible, the paper's)",
+                    "when its best match, or its patch at the prediction, fits its reference within this many times "
+                    "its usual residual; the measurement is not used either way (null: reported not visible, the "
+                    "paper's)",
     )
 
 
