@@ -1,5 +1,6 @@
-"""The fallback gate centres (``lk_fallback``: Lucas-Kanade, then the last measured step), ``filters/reference.py``; issue 31 (the visibility of a
-point too flat to measure, ``flat_visible_residual``: tests/test_clf.py).
+"""The fallback gate centres (``lk_fallback``: Lucas-Kanade, the last measured step, a coarse search),
+``filters/reference.py``; issue 31 (the visibility of a point too flat to measure, ``flat_visible_residual``:
+tests/test_clf.py).
 
 Known truth: frame 1 is frame 0 (a photograph, with noise) moved by (27, -19) px, a jump far beyond the
 16 px search square; the filters predict no motion. Without the fallback no point is found at its true
@@ -12,7 +13,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from condtrack_cli.filters.reference import ReferenceMatcher, lk_centres
+from condtrack_cli.filters.reference import HalfFrame, ReferenceMatcher, coarse_centres, lk_centres
 from condtrack_cli.filters.settings import MeasuredFilterSettings
 from condtrack_cli.measure.response import SSDSettings
 from condtrack_cli.measure.ssd import SSDMeasure, searched
@@ -92,12 +93,14 @@ def test_searched_is_the_measurement_gate():
 
 
 def test_where_lucas_kanade_fails_the_last_measured_step_is_the_next_centre(monkeypatch):
-    """With Lucas-Kanade failing everywhere (its status false, as where an object's edge fills its window), a point
+    """With Lucas-Kanade failing everywhere (its status false, as where an object's edge fills its window) and the
+    coarse search finding nothing new (its centres the previous positions, inside the gate searched), a point
     whose last measured step is JUMP is found around x_prev + JUMP, the prediction moved there; a point with no
     measured step (NaN: not found on two frames running) is not found."""
     from condtrack_cli.filters import reference as module
 
     monkeypatch.setattr(module, "lk_centres", lambda prev, cur, xy: (xy, np.zeros(len(xy), bool)))
+    monkeypatch.setattr(module, "coarse_centres", lambda prev, cur, xy: xy)
     frame0, frame1, xy = _jump_frames()
     measure = SSDMeasure(SSDSettings())
     matcher = ReferenceMatcher(measure, MeasuredFilterSettings(), len(xy), 9.21)
@@ -128,3 +131,32 @@ def test_the_reference_records_the_step_of_points_found_on_both_frames():
     assert both.sum() >= 5
     np.testing.assert_array_equal(matcher.step[both], np.broadcast_to(JUMP, xy.shape)[both])
     assert np.isnan(matcher.step[~both]).all()
+
+
+def test_the_coarse_search_finds_a_jump_with_no_prediction():
+    """``coarse_centres``: the points of frame 0 are found on frame 1 (moved by JUMP) to within 2 px (the search's
+    grid is 2 px of the full frame), with no prediction, and so are they where the jump is 70 px (within the
+    80 px search)."""
+    frame0, frame1, xy = _jump_frames()
+    centre = coarse_centres(HalfFrame(cv2.pyrDown(frame0.image)), HalfFrame(cv2.pyrDown(frame1.image)), xy)
+    np.testing.assert_allclose(centre, xy + JUMP, atol=2.0)
+    photo = load_asset("camera.png")
+    far = np.array([70.0, 0.0])
+    before, after = photo[100:300, 150:450], photo[100:300, 80:380]  # the content moves 70 px right
+    points = cv2.goodFeaturesToTrack(before, 30, 0.02, 12)[:, 0].astype(np.float64)
+    points = points[(points[:, 0] >= 20) & (points[:, 0] + far[0] <= 279) & (points[:, 1] >= 20) & (points[:, 1] <= 179)]
+    assert len(points) >= 5
+    found = coarse_centres(HalfFrame(cv2.pyrDown(before)), HalfFrame(cv2.pyrDown(after)), points)
+    np.testing.assert_allclose(found, points + far, atol=2.0)
+
+
+def test_where_no_other_centre_finds_a_point_the_coarse_search_does(monkeypatch):
+    """With Lucas-Kanade failing everywhere and no measured step, the points found on frame 0 are found on frame 1
+    (moved by JUMP) around the coarse search's centre, as where the prediction is right."""
+    from condtrack_cli.filters import reference as module
+
+    monkeypatch.setattr(module, "lk_centres", lambda prev, cur, xy: (xy, np.zeros(len(xy), bool)))
+    xy, measured = _match(True)
+    xy, oracle = _match(False, predicted_step=JUMP)
+    np.testing.assert_array_equal(measured.valid, oracle.valid)
+    np.testing.assert_allclose(measured.z[measured.valid], (xy + JUMP)[measured.valid], atol=0.25)

@@ -40,6 +40,7 @@ import numpy as np
 
 from condtrack_cli.filters import kalman
 from condtrack_cli.measure.interface import Measurement, Measurer
+from condtrack_cli.measure.surfaces import FrameSums, extract_templates, frame_sums, ssd_surfaces
 from condtrack_cli.filters.settings import MeasuredFilterSettings
 from condtrack_cli.types import Frame
 
@@ -57,6 +58,43 @@ def lk_centres(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray) -> tuple[np.nd
     )
     moved, ok = moved.reshape(-1, 2).astype(np.float64), status.reshape(-1).astype(bool)
     return moved * 2, ok & np.isfinite(moved).all(axis=1)
+
+
+COARSE_SIDE = 13  #: side of the coarse search's patch at half resolution (px; 26 px of the full frame)
+COARSE_REACH = 40  #: half-side of the coarse search's square at half resolution (px; 80 px of the full frame)
+
+
+class HalfFrame:
+    """A frame at half resolution (``cv2.pyrDown``: its (i, j) is the frame's (2i, 2j)): ``image`` as the frame's
+    (uint8, for Lucas-Kanade), ``gray`` float32, and the window sums of the coarse search, computed on first use."""
+
+    def __init__(self, image: np.ndarray):
+        self.image, self.gray = image, image.astype(np.float32)
+        self._sums: FrameSums | None = None
+
+    @property
+    def sums(self) -> FrameSums:
+        """:func:`frame_sums` of ``COARSE_SIDE`` px windows for the zero-mean cost."""
+        if self._sums is None:
+            self._sums = frame_sums(self.gray, COARSE_SIDE, "zero_mean")
+        return self._sums
+
+
+def coarse_centres(prev: HalfFrame, cur: HalfFrame, xy: np.ndarray) -> np.ndarray:
+    """(n, 2) where the patches of (n, 2) points ``xy`` of frame ``prev`` are found in frame ``cur`` by an exhaustive
+    search at half resolution (px of the full frame, to about 2 px).
+
+    Each point's ``COARSE_SIDE`` px patch of ``prev`` is compared, by the zero-mean SSD of the measurement
+    (:func:`ssd_surfaces`), with every patch of ``cur`` whose centre lies within ``COARSE_REACH`` px of its own,
+    and the best is kept: a search that needs no prediction at all, for the points that neither the dynamics nor
+    the other fallback centres find.
+    """
+    half = np.asarray(xy, np.float64) / 2
+    templates = extract_templates(prev.gray, half, COARSE_SIDE)
+    centres = np.rint(half).astype(np.intp)
+    surfaces = ssd_surfaces(cur.gray, templates, centres, COARSE_REACH, "zero_mean", cur.sums)
+    row, col = np.divmod(surfaces.reshape(len(half), -1).argmin(axis=1), surfaces.shape[2])
+    return (centres + np.stack([col, row], axis=1) - COARSE_REACH) * 2.0
 
 
 def searched(measure: Measurer, predicted: np.ndarray, gate_cov: np.ndarray, xy: np.ndarray, gamma: float) -> np.ndarray:
@@ -116,7 +154,7 @@ class ReferenceMatcher:
         self.flat_cost = np.full(n_points, np.nan)
         #: (P, 2) each point's last step between two frames it was found on (px/frame; NaN: not found on both)
         self.step = np.full((n_points, 2), np.nan)
-        self._halves: list[tuple[np.ndarray, np.ndarray]] = []  #: (image, its half-resolution image) of recent frames
+        self._halves: list[tuple[np.ndarray, HalfFrame]] = []  #: (image, its :class:`HalfFrame`) of recent frames
 
     def start(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> None:
         """Take the reference patches of points ``index`` at (n, 2) ``xy`` in their query frame."""
@@ -140,8 +178,9 @@ class ReferenceMatcher:
         With ``lk_fallback`` and the previous frame ``prev``, the points of (n,) bool ``retry`` (found on ``prev``
         at (n, 2) ``x_prev``) whose match is not used, and not shown (module docstring: the point is there, its
         surface flat), are matched again around other gate centres, in turn (:meth:`_fallback`): where pyramidal
-        Lucas-Kanade moves them from ``x_prev`` (:func:`lk_centres`), then where their last measured step carries
-        them (``step``), each when it lies outside the gate just searched (:func:`searched`), with the same
+        Lucas-Kanade moves them from ``x_prev`` (:func:`lk_centres`), where their last measured step carries
+        them (``step``), then where a coarse search finds their patch (:func:`coarse_centres`), each when it lies
+        outside the gate just searched (:func:`searched`), with the same
         covariance and the same tests, and used only if its residual is below ``lk_better`` times the best one of
         the gate around the prediction. Where that match is used, the prediction is moved to that centre:
         ``shift`` (n, 2), the displacement the filter adds to its prediction (0 elsewhere). They win few matches on
@@ -185,16 +224,22 @@ class ReferenceMatcher:
         (n,) ``valid``, ``shown`` and (n, 2) ``shift`` are updated in place.
 
         The centres, each tried on the points that the ones before did not win: where Lucas-Kanade moves the
-        point from ``x_prev`` (:func:`lk_centres`), then ``x_prev`` plus the point's last measured step
-        (``step``; a constant velocity: an object that entered the frame at 40-50 px a frame and goes on, which
-        neither the local field nor Lucas-Kanade follows where the object's edge fills the window).
+        point from ``x_prev`` (:func:`lk_centres`), ``x_prev`` plus the point's last measured step (``step``; a
+        constant velocity: an object that entered the frame at 40-50 px a frame and goes on, which neither the
+        local field nor Lucas-Kanade follows where the object's edge fills the window), then the best match of
+        an exhaustive search at half resolution (:func:`coarse_centres`; a point with no measured step yet).
         """
-        lk, lk_found = lk_centres(self._half(prev), self._half(frame), x_prev[tried])
+        lk, lk_found = lk_centres(self._half(prev).image, self._half(frame).image, x_prev[tried])
         constant_step = x_prev[tried] + self.step[index[tried]]
         for centre, usable in ((lk, lk_found), (constant_step, np.isfinite(constant_step).all(axis=1))):
             usable &= ~shown[tried]  # not won by an earlier centre
             m, r_used = self._match_around(index, tried[usable], centre[usable], frame, predicted, s_pred, m,
                                            r_used, valid, shown, shift)
+        left = tried[~shown[tried]]
+        if left.size:
+            centre = coarse_centres(self._half(prev), self._half(frame), x_prev[left])
+            m, r_used = self._match_around(index, left, centre, frame, predicted, s_pred, m, r_used, valid, shown,
+                                           shift)
         return m, r_used
 
     def _match_around(self, index: np.ndarray, tried: np.ndarray, centre: np.ndarray, frame: Frame,
@@ -221,13 +266,13 @@ class ReferenceMatcher:
         shift[won] = centre[valid2] - predicted[won]
         return m, r_used
 
-    def _half(self, frame: Frame) -> np.ndarray:
-        """``frame``'s image at half resolution (``cv2.pyrDown``), kept for the last two frames asked (a frame is
-        the current one, then the previous one; ``auto``'s two filters ask for the same pair)."""
+    def _half(self, frame: Frame) -> HalfFrame:
+        """``frame`` at half resolution, kept for the last two frames asked (a frame is the current one, then the
+        previous one; ``auto``'s two filters ask for the same pair)."""
         for image, half in self._halves:
             if image is frame.image:
                 return half
-        half = cv2.pyrDown(frame.image)
+        half = HalfFrame(cv2.pyrDown(frame.image))
         self._halves = [self._halves[-1], (frame.image, half)] if self._halves else [(frame.image, half)]
         return half
 

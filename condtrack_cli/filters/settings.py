@@ -37,8 +37,9 @@ class MeasuredFilterSettings(InitialStateSettings):
     lk_fallback: bool = Field(
         True,
         description="a point found on the previous frame whose match is not used is matched again around where "
-                    "pyramidal Lucas-Kanade moves it, then where its last measured step carries it, with the same "
-                    "tests (false: the gate around the prediction only, the paper's)",
+                    "pyramidal Lucas-Kanade moves it, where its last measured step carries it, then where a coarse "
+                    "search at half resolution finds its patch, with the same tests (false: the gate around the "
+                    "prediction only, the paper's)",
     )
     lk_better: float = Field(
         0.5, gt=0,
