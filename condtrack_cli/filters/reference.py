@@ -48,9 +48,8 @@ from condtrack_cli.types import Frame
 def lk_centres(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(n, 2) positions in frame ``cur`` of (n, 2) points ``xy`` of frame ``prev`` by OpenCV's pyramidal Lucas-Kanade
     on the frames at half resolution (``cv2.pyrDown``; a 13 px window, maxLevel 3: about the reach of the STK
-    baseline's 21 px window at maxLevel 3 on the full frames, twice that of the 15 px window at maxLevel 2 of
-    before, with a window that spans less of a moving object's edge; docs/departures.md), and (n,) bool: found
-    (LK's status, a finite position)."""
+    baseline's 21 px window at maxLevel 3 on the full frames, with a window that spans less of a moving object's
+    edge; docs/departures.md), and (n,) bool: found (LK's status, a finite position)."""
     half = (np.asarray(xy, np.float64) / 2).astype(np.float32).reshape(-1, 1, 2)  # pyrDown's (i, j): the frame's (2i, 2j)
     moved, status, _ = cv2.calcOpticalFlowPyrLK(  # the STK baseline's criteria (``filters/stk.py``)
         prev, cur, half, None, winSize=(13, 13), maxLevel=3,
@@ -84,8 +83,9 @@ def coarse_centres(prev: HalfFrame, cur: HalfFrame, xy: np.ndarray) -> np.ndarra
     """(n, 2) where the patches of (n, 2) points ``xy`` of frame ``prev`` are found in frame ``cur`` by an exhaustive
     search at half resolution (px of the full frame, to about 2 px).
 
-    Each point's ``COARSE_SIDE`` px patch of ``prev`` is compared, by the zero-mean SSD of the measurement
-    (:func:`ssd_surfaces`), with every patch of ``cur`` whose centre lies within ``COARSE_REACH`` px of its own,
+    Each point's ``COARSE_SIDE`` px patch of ``prev`` is compared, by the zero-mean SSD (:func:`ssd_surfaces`,
+    ``measure.cost``'s default, whatever the run's cost), with every patch of ``cur`` whose centre lies within
+    ``COARSE_REACH`` px of its own,
     and the best is kept: a search that needs no prediction at all, for the points that neither the dynamics nor
     the other fallback centres find.
     """
