@@ -12,11 +12,15 @@ import click
 
 from condtrack_cli.batch.job import BatchJob, run_job
 from condtrack_cli.batch.manifest import ClipRecord
+from condtrack_cli.interrupts import held_signals
 from condtrack_cli.progress import show_warnings, warnings_shown
 from condtrack_cli.threads import blas_environment
 
 #: Exit status of a process stopped by SIGTERM (128 + 15), the shells' convention.
 SIGTERM_EXIT = 143
+
+#: Seconds between two looks for a held stop signal while the pool's workers run (``run_local``).
+SIGNAL_POLL = 0.05
 
 
 def stop_on_sigterm(signum, frame) -> None:
@@ -70,6 +74,10 @@ def run_local(jobs: list[BatchJob], processes: int, on_record: Callable[[ClipRec
     Any exception in this process (Ctrl-C's KeyboardInterrupt, SIGTERM's
     SystemExit) drops the queued jobs and terminates the workers, whose running
     job then removes its unfinished output: nothing is published after it.
+    While the pool runs, a stop signal is held and raised between two results
+    (``held_signals``): raised inside the pool's own code, between a lock's
+    acquire and its ``with`` block, it could leave that lock taken, and then
+    ``terminate`` waited forever on the thread that collects the results.
     """
     if processes <= 1 or len(jobs) <= 1:
         for job in jobs:
@@ -80,8 +88,16 @@ def run_local(jobs: list[BatchJob], processes: int, on_record: Callable[[ClipRec
         shown = warnings_shown()
         pool = context.Pool(min(processes, len(jobs)), initializer=_start_worker, initargs=(shown,))
     try:
-        for record in pool.imap_unordered(run_job, jobs):
-            on_record(record)
+        with held_signals() as held:
+            results = pool.imap_unordered(run_job, jobs)
+            while not held.received:
+                try:
+                    record = results.next(timeout=SIGNAL_POLL)
+                except StopIteration:
+                    break
+                except multiprocessing.TimeoutError:
+                    continue
+                on_record(record)
         pool.close()
     except BaseException:
         pool.terminate()
