@@ -76,8 +76,8 @@ def run_local(jobs: list[BatchJob], processes: int, on_record: Callable[[ClipRec
     job then removes its unfinished output: nothing is published after it.
     While the pool runs, a stop signal is held and raised between two results
     (``held_signals``): raised inside the pool's own code, between a lock's
-    acquire and its ``with`` block, it could leave that lock taken, and then
-    ``terminate`` waited forever on the thread that collects the results.
+    acquire and its ``with`` block, it can leave that lock taken, and
+    ``terminate`` then waits forever on the thread that collects the results.
     """
     if processes <= 1 or len(jobs) <= 1:
         for job in jobs:
