@@ -5,6 +5,8 @@ Imports neither numpy nor rich at module level: ``condtrack --help`` imports thi
 
 from __future__ import annotations
 
+import os
+import sys
 import time
 import warnings
 
@@ -37,6 +39,33 @@ def _print_warning(message, category, filename, lineno, file=None, line=None) ->
         _showwarning(message, category, filename, lineno, file, line)
 
 
+def _may_be_terminal() -> bool:
+    """False where rich's ``Console.is_terminal`` is surely false for stderr (so rich, ~30 ms of import, is not
+    loaded to draw nothing): ``TTY_COMPATIBLE=0``, or neither ``TTY_COMPATIBLE=1`` nor a non-empty ``FORCE_COLOR``
+    and stderr not a terminal. True: ask rich."""
+    forced = os.environ.get("TTY_COMPATIBLE", "")
+    if forced in ("0", "1"):
+        return forced == "1"
+    if os.environ.get("FORCE_COLOR") is not None:
+        return os.environ["FORCE_COLOR"] != ""
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):  # no stream, or a closed one
+        return False
+
+
+def _terminal_bar():
+    """rich's progress bar on stderr when rich takes stderr for a terminal, else None."""
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress as Bar, TextColumn, TimeRemainingColumn
+
+    console = Console(stderr=True)
+    return Bar(
+        TextColumn("tracking"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
+        TextColumn("{task.fields[fps]:.1f} fps"), TimeRemainingColumn(), console=console, transient=True,
+    ) if console.is_terminal else None
+
+
 class Progress:
     """A tracking run's progress bar on stderr: frames done of all, frames per second, time left.
 
@@ -46,15 +75,8 @@ class Progress:
     """
 
     def __init__(self) -> None:
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress as Bar, TextColumn, TimeRemainingColumn
-
-        console = Console(stderr=True)
         self.started = time.perf_counter()
-        self.bar = Bar(
-            TextColumn("tracking"), BarColumn(), MofNCompleteColumn(), TextColumn("frames"),
-            TextColumn("{task.fields[fps]:.1f} fps"), TimeRemainingColumn(), console=console, transient=True,
-        ) if console.is_terminal else None
+        self.bar = _terminal_bar() if _may_be_terminal() else None
         self.task = None
         self.drawn = False  #: the bar started (an interrupt may arrive inside rich's start)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -11,6 +12,7 @@ import pytest
 from click.testing import CliRunner
 
 from condtrack_cli.cli import COMMANDS, LazyGroup, cli
+from conftest import FORCED_TERMINAL
 
 #: Libraries ``condtrack --help`` must not import (each costs tens of milliseconds).
 HEAVY = ("numpy", "cv2", "scipy", "h5py", "pydantic")
@@ -28,9 +30,9 @@ print(json.dumps({"code": code, "modules": sorted(sys.modules)}), file=sys.stder
 """
 
 
-def imported_by(*args: str) -> set[str]:
-    """The modules a fresh ``condtrack ARGS`` process imported (it must exit 0)."""
-    done = subprocess.run([sys.executable, "-c", _PROBE, *args], capture_output=True, text=True, timeout=300)
+def imported_by(*args: str, env: dict[str, str] | None = None) -> set[str]:
+    """The modules a fresh ``condtrack ARGS`` process imported (it must exit 0); ``env``: its environment."""
+    done = subprocess.run([sys.executable, "-c", _PROBE, *args], capture_output=True, text=True, timeout=300, env=env)
     report = json.loads(done.stderr.splitlines()[-1])
     assert report["code"] == 0, done.stderr
     return set(report["modules"])
@@ -55,6 +57,14 @@ def test_a_csv_run_imports_neither_hdf5_nor_the_other_commands(tmp_path):
     assert not {"h5py", "rich", "matplotlib", "dask"} & loaded
     commands = {f"condtrack_cli.cli.{spec.partition(':')[0]}" for spec, _ in COMMANDS.values()}
     assert commands & loaded == {"condtrack_cli.cli.track"}
+
+
+def test_a_run_whose_stderr_is_no_terminal_does_not_load_rich(tmp_path, tiny_clip):
+    """No bar is drawn on a pipe, so rich (tens of ms of import) is not loaded, -q or not; forced, it is."""
+    plain = {k: v for k, v in os.environ.items() if k not in ("TTY_COMPATIBLE", "FORCE_COLOR")}
+    track = ("track", str(tiny_clip), "-p", str(tiny_clip / "queries.csv"), "-m", "stk")
+    assert "rich" not in imported_by(*track, "-o", str(tmp_path / "a.csv"), env=plain)
+    assert "rich" in imported_by(*track, "-o", str(tmp_path / "b.csv"), env={**plain, **FORCED_TERMINAL})
 
 
 @pytest.fixture(scope="module")
