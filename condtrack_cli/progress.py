@@ -40,9 +40,9 @@ def _print_warning(message, category, filename, lineno, file=None, line=None) ->
 
 
 def _may_be_terminal() -> bool:
-    """False where rich's ``Console.is_terminal`` is surely false for stderr (so rich, ~30 ms of import, is not
-    loaded to draw nothing): ``TTY_COMPATIBLE=0``, or neither ``TTY_COMPATIBLE=1`` nor a non-empty ``FORCE_COLOR``
-    and stderr not a terminal. True: ask rich."""
+    """False where rich's ``Console.is_terminal`` is surely false for stderr (so rich, tens of milliseconds of
+    import, is not loaded to draw nothing): ``TTY_COMPATIBLE=0``, or neither ``TTY_COMPATIBLE=1`` nor a non-empty
+    ``FORCE_COLOR`` and stderr not a terminal. True: ask rich."""
     forced = os.environ.get("TTY_COMPATIBLE", "")
     if forced in ("0", "1"):
         return forced == "1"

@@ -85,9 +85,8 @@ def coarse_centres(prev: HalfFrame, cur: HalfFrame, xy: np.ndarray) -> np.ndarra
 
     Each point's ``COARSE_SIDE`` px patch of ``prev`` is compared, by the zero-mean SSD (:func:`ssd_surfaces`,
     ``measure.cost``'s default, whatever the run's cost), with every patch of ``cur`` whose centre lies within
-    ``COARSE_REACH`` px of its own,
-    and the best is kept: a search that needs no prediction at all, for the points that neither the dynamics nor
-    the other fallback centres find.
+    ``COARSE_REACH`` px of its own, and the best is kept: a search that needs no prediction at all, for the points
+    that neither the dynamics nor the other fallback centres find.
     """
     half = np.asarray(xy, np.float64) / 2
     templates = extract_templates(prev.gray, half, COARSE_SIDE)
