@@ -39,30 +39,21 @@ FLOAT_FORMATS = {"x": "%.6f", "y": "%.6f", "cov_xx": "%.6e", "cov_xy": "%.6e", "
 
 
 def csv_text(tracks: Tracks) -> str:
-    """The long CSV (header included) of ``tracks``."""
+    """The long CSV (header included) of ``tracks``.
+
+    One %-format per row over Python scalars: the same characters as numpy's ``np.char.mod`` column by column
+    (which applies Python's % to each element), in about a third of the time (issue 26: 30 000 rows 0.45 -> 0.15 s).
+    """
     points, frames = np.nonzero(tracks.has_state)  # row-major: by point then frame
     xy = tracks.xy[points, frames]
     cov = tracks.cov[points, frames]
-    methods = np.array(method_codes(), dtype=object)[tracks.method[points, frames]]
-    columns = [
-        np.char.mod("%d", tracks.queries.point_id[points]),
-        np.char.mod("%d", frames),
-        np.char.mod(FLOAT_FORMATS["x"], xy[:, 0]),
-        np.char.mod(FLOAT_FORMATS["y"], xy[:, 1]),
-        np.char.mod(FLOAT_FORMATS["cov_xx"], cov[:, 0, 0]),
-        np.char.mod(FLOAT_FORMATS["cov_xy"], cov[:, 0, 1]),
-        np.char.mod(FLOAT_FORMATS["cov_yy"], cov[:, 1, 1]),
-        np.char.mod(FLOAT_FORMATS["dof"], tracks.dof[points, frames]),
-        np.char.mod("%d", tracks.visible[points, frames].astype(int)),
-        methods.astype(str),
-    ]
-    header = ",".join(CSV_COLUMNS)
-    if not len(points):
-        return header + "\n"
-    rows = columns[0]
-    for column in columns[1:]:
-        rows = np.char.add(np.char.add(rows, ","), column)
-    return header + "\n" + "\n".join(rows.tolist()) + "\n"
+    codes = method_codes()
+    columns = [tracks.queries.point_id[points], frames, xy[:, 0], xy[:, 1], cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1],
+               tracks.dof[points, frames], tracks.visible[points, frames].astype(int)]
+    row = ",".join(["%d", "%d"] + [FLOAT_FORMATS[name] for name in CSV_COLUMNS[2:8]] + ["%d", "%s"])
+    methods = [codes[code] for code in tracks.method[points, frames].tolist()]
+    lines = map(row.__mod__, zip(*(column.tolist() for column in columns), methods))
+    return "\n".join([",".join(CSV_COLUMNS), *lines]) + "\n"
 
 
 def write_csv(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:

@@ -95,8 +95,8 @@ def speed_table(work: Path, shared: Path, repeats: int = 3, threads: int | None 
 
     Per scene, ``repeats`` rounds each run the script (``plain_lk.py``: decode, LK
     with the forward-backward check, CSV out) then each of ``SPEED_METHODS`` (``condtrack
-    track``, start-up and writing the HDF5 file included), one process each; the
-    table gives the median wall time, its ratio to the script's median of the same
+    track``, start-up and writing the CSV file included, as the script and issue 26's protocol do), one
+    process each; the table gives the median wall time, its ratio to the script's median of the same
     run, the largest peak RSS and issue 26's check. Where the scene's queries span
     several frames, each method runs again with ``--forward-only`` (rows from the query
     frame on, as the script writes). ``threads``: both sides pinned
@@ -110,7 +110,8 @@ def speed_table(work: Path, shared: Path, repeats: int = 3, threads: int | None 
         "and its ratio to the plain OpenCV LK script (`condtrack_cli/evaluate/plain_lk.py`: calcOpticalFlowPyrLK "
         "winSize 21, maxLevel 3, forward-backward check 1 px, CSV out) of the same run"
         + (f", both pinned to {threads} thread(s)" if threads else ", each with its default threads") + ". "
-        "Issue 26's targets: " + ", ".join(f"{m} <= {x:g}x" for m, x in TIME_TARGETS.items()) + ", peak RSS <= 300 MiB. "
+        "condtrack writes CSV, as the script does. Issue 26's targets: "
+        + ", ".join(f"{m} <= {x:g}x" for m, x in TIME_TARGETS.items()) + ", peak RSS <= 300 MiB. "
         f"Rows `METHOD{FORWARD_ONLY}` (scenes whose queries span several frames): condtrack without its backward "
         "pass, rows from each query frame on only, as the script writes them.",
         "",
@@ -128,11 +129,11 @@ def speed_table(work: Path, shared: Path, repeats: int = 3, threads: int | None 
                     plain = method.split()[1]
                     seconds, rss, code, message = run_track(
                         [str(folder), "-p", str(queries), "-c", str(PAPER_CONFIG), "-m", plain,
-                         "-o", str(work / f"speed.paper-{plain}.h5")] + pinned)
+                         "-o", str(work / f"speed.paper-{plain}.csv")] + pinned)
                 else:
                     plain = method.removesuffix(FORWARD_ONLY)
                     seconds, rss, code, message = run_track(
-                        [str(folder), "-p", str(queries), "-m", plain, "-o", str(work / f"speed.{plain}.h5")] + pinned
+                        [str(folder), "-p", str(queries), "-m", plain, "-o", str(work / f"speed.{plain}.csv")] + pinned
                         + (["--forward-only"] if method.endswith(FORWARD_ONLY) else []))
                 if code:
                     failed[method] = message
