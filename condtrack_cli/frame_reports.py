@@ -9,8 +9,9 @@ as ``.npy`` files to a temporary folder (``tempfile``: ``TMPDIR``), and read bac
 only when the tracker stacks the whole pass (``Tracker.finish``), after the
 pipeline has let the motion stage's work arrays go. The arrays read back are
 the arrays reported, bit for bit. A pass's stacked tracks can wait on disk the
-same way (``park``) while the other pass runs. A folder that cannot be written
-is a :class:`CondtrackError` naming it. A folder's name holds the host and the
+same way (``park``) while the other pass runs, and the forward pass's frames up to
+the latest query frame wait there for the backward pass (``FrameStore``). A folder
+that cannot be written is a :class:`CondtrackError` naming it. A folder's name holds the host and the
 process id; the first folder a process makes removes those of dead processes.
 """
 
@@ -24,6 +25,7 @@ import shutil
 import socket
 import tempfile
 from pathlib import Path
+from typing import Iterable, Iterator
 
 import numpy as np
 
@@ -98,6 +100,45 @@ def park(tracks: Tracks, folder: Path) -> Tracks:
 def _write_error(error: OSError) -> CondtrackError:
     return CondtrackError(f"temporary folder {tempfile.gettempdir()}: cannot write the per-frame results "
                           f"({error.strerror or error}); set TMPDIR to a writable folder with space")
+
+
+class FrameStore:
+    """Frames 0..``last`` of the forward pass kept as raw bytes in ``path``, read back last to first.
+
+    The backward pass (``pipeline.run``) reads them from here instead of decoding the
+    input again: a folder's images are decoded once, and a video, which can only be
+    decoded from its start, no longer costs about last^2 / 128 frame decodes. The file
+    holds (last + 1) H W bytes (plain writes, not a memory map: the pages are the
+    system's cache, not the process's memory); the frames read back are those
+    decoded, bit for bit.
+    """
+
+    def __init__(self, path: Path, last: int):
+        self.path = path
+        self.last = last
+        self._shape: tuple[int, int] | None = None  #: (H, W) of the frames kept
+        self._kept = 0
+
+    def keeping(self, frames: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
+        """``frames`` as they are, frames 0..``last`` (H, W) uint8 written to the store on the way."""
+        try:
+            with open(self.path, "wb") as store:
+                for index, frame in enumerate(frames):
+                    if index <= self.last:
+                        self._shape = frame.shape
+                        store.write(np.ascontiguousarray(frame, np.uint8).data)
+                        self._kept = index + 1
+                    yield frame
+        except OSError as error:
+            raise _write_error(error) from error
+
+    def reversed(self) -> Iterator[np.ndarray]:
+        """Frames ``last``, ``last - 1``, ..., 0 as (H, W) uint8, once ``keeping`` has gone through them."""
+        if self._kept != self.last + 1:
+            raise ValueError(f"the store holds {self._kept} frames, not the {self.last + 1} up to frame {self.last}")
+        size = self._shape[0] * self._shape[1]
+        for index in range(self.last, -1, -1):
+            yield np.fromfile(self.path, np.uint8, count=size, offset=index * size).reshape(self._shape)
 
 
 class FrameReports:

@@ -44,7 +44,7 @@ from condtrack_cli.config import Config
 from condtrack_cli.detect.trackability import Aperture, QueryScorer, trackability_settings
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.filters.interface import Tracker
-from condtrack_cli.frame_reports import FrameReports, park, temporary_folder
+from condtrack_cli.frame_reports import FrameReports, FrameStore, park, temporary_folder
 from condtrack_cli.frames.prefetch import Prefetched
 from condtrack_cli.motion.interface import FrameMotion, MotionStages
 from condtrack_cli.queries import detected_queries
@@ -96,19 +96,20 @@ def run(
 ) -> Tracks:
     """Track ``queries`` (detected on frame 0 when None) through ``source`` in both directions.
 
-    ``source`` iterates (H, W) uint8 frames and has ``reversed_from(k)`` (the
-    frame readers). The backward pass uses the seed ``seed + 1``; with ``output.backward``
-    false there is none, and a point has no state before its query frame.
+    ``source`` iterates (H, W) uint8 frames (the frame readers). The backward pass
+    uses the seed ``seed + 1`` and reads the forward pass's frames from a
+    ``FrameStore`` (frames 0..k_max on disk); with ``output.backward`` false there is
+    none, and a point has no state before its query frame.
     """
-    forward = run_pass(source, info, config, queries, seed, on_frame)
-    queries = forward.queries
-    last = int(queries.frame.max())
-    if last == 0 or not config.output.backward:
-        return forward
-    mirrored = Queries(queries.point_id, last - queries.frame, queries.xy)
+    last = int(queries.frame.max()) if queries is not None and len(queries) and config.output.backward else 0
+    if last == 0:
+        return run_pass(source, info, config, queries, seed, on_frame)
     with temporary_folder() as folder:
+        store = FrameStore(Path(folder) / "frames.u8", last)
+        forward = run_pass(store.keeping(source), info, config, queries, seed, on_frame)
         forward = park(forward, Path(folder))  # waits on disk while the backward pass runs (memory flat in length)
-        backward = run_pass(source.reversed_from(last), info, config, mirrored, seed + 1, on_frame)
+        mirrored = Queries(queries.point_id, last - queries.frame, queries.xy)
+        backward = run_pass(store.reversed(), info, config, mirrored, seed + 1, on_frame)
         merged = merge_backward(forward, backward)
         del forward  # the memory maps go before their files
     return merged

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import errno
+import io
 import os
 import socket
 import subprocess
@@ -15,7 +17,7 @@ import pytest
 import condtrack_cli as ct
 from condtrack_cli import frame_reports
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.frame_reports import FIELDS, FrameReports, park
+from condtrack_cli.frame_reports import FIELDS, FrameReports, FrameStore, park
 from condtrack_cli.types import FrameEstimate, Queries, Tracks
 from conftest import SAMPLES
 
@@ -78,6 +80,64 @@ def test_parked_tracks_are_their_arrays_read_back_from_disk(tmp_path):
         assert isinstance(array, np.memmap) and not array.flags.writeable
         assert array.dtype == getattr(tracks, name).dtype and array.tobytes() == getattr(tracks, name).tobytes()
     assert parked.queries is tracks.queries
+
+
+def test_the_store_gives_back_the_kept_frames_last_to_first_bit_for_bit(tmp_path):
+    rng = np.random.default_rng(2)
+    frames = [rng.integers(0, 256, (5, 7), np.uint8) for _ in range(6)]
+    store = FrameStore(tmp_path / "frames.u8", last=3)
+    passed = list(store.keeping(iter(frames)))
+    assert all(a is b for a, b in zip(passed, frames)) and len(passed) == 6  # the forward pass's frames, untouched
+    assert (tmp_path / "frames.u8").stat().st_size == 4 * 5 * 7  # frames 0..3 only
+    back = list(store.reversed())
+    assert [frame.tobytes() for frame in back] == [frames[k].tobytes() for k in (3, 2, 1, 0)]
+    assert all(frame.dtype == np.uint8 and frame.shape == (5, 7) for frame in back)
+
+
+def test_reading_the_store_before_the_forward_pass_kept_its_frames_is_an_error(tmp_path):
+    store = FrameStore(tmp_path / "frames.u8", last=3)
+    list(store.keeping(iter([np.zeros((2, 2), np.uint8)] * 2)))
+    with pytest.raises(ValueError, match="holds 2 frames, not the 4 up to frame 3"):
+        next(store.reversed())
+
+
+def test_a_full_disk_while_keeping_the_frames_is_a_one_line_error(monkeypatch):
+    class Full(io.BytesIO):
+        def write(self, _data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(frame_reports, "open", lambda *_args: Full(), raising=False)  # the store's file only
+    sample = SAMPLES / "occlusion"
+    with pytest.raises(CondtrackError, match=r"cannot write the per-frame results \(No space left on device\)"):
+        ct.track(sample, queries=sample / "queries.csv", method="stk")
+
+
+def test_a_two_way_run_on_a_video_decodes_each_frame_once(tmp_path, monkeypatch):
+    """The backward pass used to decode a video again from its start in blocks of 64 frames (about last^2 / 128
+    decodes); it now reads the forward pass's frames back from the temporary folder."""
+    import cv2
+
+    from condtrack_cli.frames import readers
+
+    video = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48), False)
+    rng = np.random.default_rng(3)
+    texture = cv2.GaussianBlur(rng.integers(0, 256, (48, 80), np.uint8), (0, 0), 1.5)
+    for k in range(8):
+        writer.write(np.ascontiguousarray(texture[:, k : k + 64]))
+    writer.release()
+    decoded = []
+    plain_iter = readers.VideoSource.__iter__
+
+    def counting_iter(self):
+        for image in plain_iter(self):
+            decoded.append(image)
+            yield image
+
+    monkeypatch.setattr(readers.VideoSource, "__iter__", counting_iter)
+    two_way = ct.track(video, queries=np.array([[0, 30.0, 20.0], [6, 30.0, 20.0]]), method="clf")
+    assert len(decoded) == 1 + 8  # opening the video (its first frame, for the size), then the forward pass
+    assert np.isfinite(two_way.xy[1, :6]).all()  # the point queried at frame 6 has its backward rows
 
 
 @pytest.mark.filterwarnings("ignore:.*queries are untrackable:condtrack_cli.errors.CondtrackWarning")  # incidental queries (issue 29)

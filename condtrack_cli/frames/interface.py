@@ -4,8 +4,9 @@ A frames stage is registered with ``register("frames", name, SettingsModel)`` on
 factory called ``factory(settings, path) -> FrameSource``; it raises
 :class:`condtrack_cli.errors.CondtrackError` naming the path when the input cannot
 be read. Frames are in the package's pixel convention (``condtrack_cli/types.py``).
-The pipeline iterates a source (``iter``, ``reversed_from``) on a reader thread,
-one frame ahead of the tracking (``prefetch.py``); its errors reach the caller unchanged.
+The pipeline iterates a source (``iter``) once, on a reader thread, one frame ahead
+of the tracking (``prefetch.py``); its errors reach the caller unchanged. The
+backward pass reads the frames the forward pass kept (``frame_reports.FrameStore``).
 The built-in stages are rows of ``registry.BUILTINS`` instead.
 """
 
@@ -19,7 +20,7 @@ from condtrack_cli.types import SequenceInfo
 
 
 class FrameSource(Protocol):
-    """An opened input: its size and frame count, and its frames forwards and backwards."""
+    """An opened input: its size and frame count, and its frames."""
 
     info: SequenceInfo  #: width and height (px), n_frames, fps (0.0 when the input has no timing)
 
@@ -28,6 +29,3 @@ class FrameSource(Protocol):
 
     def read(self, index: int) -> np.ndarray:
         """Frame ``index`` as (H, W) uint8."""
-
-    def reversed_from(self, last: int) -> Iterator[np.ndarray]:
-        """Frames ``last``, ``last - 1``, ..., 0 as (H, W) uint8 (the backward pass)."""

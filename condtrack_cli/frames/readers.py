@@ -98,11 +98,6 @@ class FolderSource:
         for index in range(len(self.paths)):
             yield self.read(index)
 
-    def reversed_from(self, last: int) -> Iterator[np.ndarray]:
-        """Frames ``last``, ``last - 1``, ..., 0."""
-        for index in range(last, -1, -1):
-            yield self.read(index)
-
 
 class VideoSource:
     """A video file read through OpenCV, decoded one frame at a time."""
@@ -145,18 +140,6 @@ class VideoSource:
             if position == index:
                 return image
         raise CondtrackError(f"{self.path}: frame {index} is past the end")
-
-    def reversed_from(self, last: int, chunk: int = 64) -> Iterator[np.ndarray]:
-        """Frames ``last``, ``last - 1``, ..., 0, decoding ``chunk`` frames at a time from the start.
-
-        Holds at most ``chunk`` frames in memory; decodes O(last^2 / chunk) frames.
-        """
-        end = last + 1
-        while end > 0:
-            begin = max(0, end - chunk)
-            block = [image for position, image in zip(range(end), self) if position >= begin]
-            yield from reversed(block)
-            end = begin
 
 
 def open_frames(settings: FrameSettings, path: str | Path) -> FolderSource | VideoSource:
