@@ -120,17 +120,21 @@ class FrameStore:
         self._kept = 0
 
     def keeping(self, frames: Iterable[np.ndarray]) -> Iterator[np.ndarray]:
-        """``frames`` as they are, frames 0..``last`` (H, W) uint8 written to the store on the way."""
+        """``frames`` as they are, frames 0..``last`` (H, W) uint8 written to the store on the way; a CondtrackError
+        naming the temporary folder when the store cannot be written (an error of ``frames`` passes unchanged)."""
         try:
-            with open(self.path, "wb") as store:
-                for index, frame in enumerate(frames):
-                    if index <= self.last:
-                        self._shape = frame.shape
-                        store.write(np.ascontiguousarray(frame, np.uint8).data)
-                        self._kept = index + 1
-                    yield frame
+            store = open(self.path, "wb")
         except OSError as error:
             raise _write_error(error) from error
+        with store:
+            for index, frame in enumerate(frames):
+                if index <= self.last:
+                    try:
+                        store.write(np.ascontiguousarray(frame, np.uint8).data)
+                    except OSError as error:
+                        raise _write_error(error) from error
+                    self._shape, self._kept = frame.shape, index + 1
+                yield frame
 
     def reversed(self) -> Iterator[np.ndarray]:
         """Frames ``last``, ``last - 1``, ..., 0 as (H, W) uint8, once ``keeping`` has gone through them."""

@@ -101,6 +101,15 @@ def test_reading_the_store_before_the_forward_pass_kept_its_frames_is_an_error(t
         next(store.reversed())
 
 
+def test_an_error_of_the_frames_passes_through_the_store_unchanged(tmp_path):
+    def failing():
+        yield np.zeros((2, 2), np.uint8)
+        raise OSError(errno.EIO, "Input/output error")
+
+    with pytest.raises(OSError, match="Input/output error"):
+        list(FrameStore(tmp_path / "frames.u8", last=3).keeping(failing()))
+
+
 def test_a_full_disk_while_keeping_the_frames_is_a_one_line_error(monkeypatch):
     class Full(io.BytesIO):
         def write(self, _data):
