@@ -10,9 +10,10 @@ only when the tracker stacks the whole pass (``Tracker.finish``), after the
 pipeline has let the motion stage's work arrays go. The arrays read back are
 the arrays reported, bit for bit. A pass's stacked tracks can wait on disk the
 same way (``park``) while the other pass runs, and the forward pass's frames up to
-the latest query frame wait there for the backward pass (``FrameStore``). A folder
-that cannot be written is a :class:`CondtrackError` naming it. A folder's name holds the host and the
-process id; the first folder a process makes removes those of dead processes.
+the latest query frame wait there for the backward pass (``FrameStore``). A
+folder that cannot be written is a :class:`CondtrackError` naming it. A folder's
+name holds the host and the process id; the first folder a process makes removes
+those of dead processes.
 """
 
 from __future__ import annotations
