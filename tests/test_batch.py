@@ -384,3 +384,33 @@ def test_a_batch_output_that_is_the_queries_file_is_refused_before_work(clips, t
         f"Error: the output of '{clip}', {queries}: the same file as the input -p {queries}; "
         "writing it would destroy the input\n")
     assert queries.read_text() == "frame,x,y\n0,40,30\n" and [p.name for p in out_dir.iterdir()] == ["queries.csv"]
+
+
+def _sleep_through_sigterm() -> None:
+    """A stand-in for a pool worker that does not exit on SIGTERM."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    time.sleep(60)
+
+
+def test_a_pool_whose_shutdown_hangs_has_its_workers_killed(monkeypatch):
+    """The fall-back of an interrupted batch (stop_pool): when the pool's terminate does not return, the workers
+    still alive after STOP_WAIT are killed, so the batch exits instead of waiting for ever."""
+    import multiprocessing
+    import threading
+
+    from condtrack_cli.batch import local
+
+    worker = multiprocessing.get_context("spawn").Process(target=_sleep_through_sigterm, daemon=True)
+    worker.start()
+    stuck = threading.Event()
+
+    class HangingPool:
+        def terminate(self):
+            stuck.wait()
+
+    monkeypatch.setattr(local, "STOP_WAIT", 0.5)
+    started = time.monotonic()
+    local.stop_pool(HangingPool())
+    worker.join(5)
+    assert worker.exitcode == -signal.SIGKILL and time.monotonic() - started < 5
+    stuck.set()

@@ -6,6 +6,7 @@ import contextlib
 import multiprocessing
 import os
 import signal
+import threading
 from typing import Callable
 
 import click
@@ -21,6 +22,9 @@ SIGTERM_EXIT = 143
 
 #: Seconds between two looks for a held stop signal while the pool's workers run (``run_local``).
 SIGNAL_POLL = 0.05
+
+#: Seconds an interrupted pool's shutdown may take before its workers are killed (``stop_pool``).
+STOP_WAIT = 10.0
 
 
 def stop_on_sigterm(signum, frame) -> None:
@@ -73,11 +77,11 @@ def run_local(jobs: list[BatchJob], processes: int, on_record: Callable[[ClipRec
 
     Any exception in this process (Ctrl-C's KeyboardInterrupt, SIGTERM's
     SystemExit) drops the queued jobs and terminates the workers, whose running
-    job then removes its unfinished output: nothing is published after it.
-    While the pool runs, a stop signal is held and raised between two results
-    (``held_signals``): raised inside the pool's own code, between a lock's
-    acquire and its ``with`` block, it can leave that lock taken, and
-    ``terminate`` then waits forever on the thread that collects the results.
+    job then removes its unfinished output: nothing is published after it
+    (``stop_pool``). While the pool runs, a stop signal is held and raised
+    between two results (``held_signals``): raised inside the pool's own code,
+    between a lock's acquire and its ``with`` block, it can leave that lock
+    taken, and ``terminate`` then waits forever on the thread that collects the results.
     """
     if processes <= 1 or len(jobs) <= 1:
         for job in jobs:
@@ -100,7 +104,25 @@ def run_local(jobs: list[BatchJob], processes: int, on_record: Callable[[ClipRec
                 on_record(record)
         pool.close()
     except BaseException:
-        pool.terminate()
+        stop_pool(pool)
         raise
-    finally:
-        pool.join()
+    pool.join()
+
+
+def stop_pool(pool) -> None:
+    """Terminate ``pool`` (its workers get SIGTERM and unwind), killing the workers left after ``STOP_WAIT`` s.
+
+    ``Pool.terminate`` waits on locks its workers share with this process (the task
+    queue's, the result queue's) and on each worker's exit; an interrupted ``-j 2``
+    batch was seen waiting past the tests' two minutes twice in about twenty runs of
+    the suite, with signals already held (where it waited was not caught). So it runs
+    in a thread of its own (a daemon: the process may exit without it), and the
+    workers still alive when its time is up are killed.
+    """
+    stopper = threading.Thread(target=pool.terminate, name="condtrack-pool-stop", daemon=True)
+    stopper.start()
+    stopper.join(STOP_WAIT)
+    if stopper.is_alive():
+        for worker in multiprocessing.active_children():
+            worker.kill()
+        stopper.join(STOP_WAIT)
