@@ -168,8 +168,8 @@ def track_sequence(
     block, floor, policy = trackability_settings(config.stage("detect").settings)
     if queries is not None and policy != "keep":  # the trackability test (issue 29): drop and error act before tracking
         queries, _ = screen_queries(queries, query_scores(source, queries, block), floor, policy)
-    backward = config.output.backward and queries is not None and queries.frame.max() > 0
-    backward_frames = int(queries.frame.max()) + 1 if backward else 0
+    last = pipeline.backward_start(config, queries)
+    backward_frames = last + 1 if last else 0
     on_frame = None
     if progress is not None:
         total, done = info.n_frames + backward_frames, itertools.count(1)

@@ -107,8 +107,8 @@ class FrameStore:
     """Frames 0..``last`` of the forward pass kept as raw bytes in ``path``, read back last to first.
 
     The backward pass (``pipeline.run``) reads them from here instead of decoding the
-    input again: a folder's images are decoded once, and a video, which can only be
-    decoded from its start, no longer costs about last^2 / 128 frame decodes. The file
+    input again: a folder's images and a video (which can only be decoded from its
+    start) are decoded once. The file
     holds (last + 1) H W bytes (plain writes, not a memory map: the pages are the
     system's cache, not the process's memory); the frames read back are those
     decoded, bit for bit.

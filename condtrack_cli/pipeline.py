@@ -101,7 +101,7 @@ def run(
     ``FrameStore`` (frames 0..k_max on disk); with ``output.backward`` false there is
     none, and a point has no state before its query frame.
     """
-    last = int(queries.frame.max()) if queries is not None and len(queries) and config.output.backward else 0
+    last = backward_start(config, queries)
     if last == 0:
         return run_pass(source, info, config, queries, seed, on_frame)
     with temporary_folder() as folder:
@@ -113,6 +113,12 @@ def run(
         merged = merge_backward(forward, backward)
         del forward  # the memory maps go before their files
     return merged
+
+
+def backward_start(config: Config, queries: Queries | None) -> int:
+    """The frame the backward pass starts from, k_max (the latest query frame); 0: there is no backward pass
+    (no query after frame 0, detected queries, or ``output.backward`` false)."""
+    return int(queries.frame.max()) if queries is not None and len(queries) and config.output.backward else 0
 
 
 def merge_backward(forward: Tracks, backward: Tracks) -> Tracks:

@@ -114,10 +114,10 @@ def stop_pool(pool) -> None:
 
     ``Pool.terminate`` waits on locks its workers share with this process (the task
     queue's, the result queue's) and on each worker's exit; an interrupted ``-j 2``
-    batch was seen waiting past the tests' two minutes twice in about twenty runs of
-    the suite, with signals already held (where it waited was not caught). So it runs
-    in a thread of its own (a daemon: the process may exit without it), and the
-    workers still alive when its time is up are killed.
+    batch was seen waiting past the tests' two minutes with signals already held
+    (where it waited was not caught). So it runs in a thread of its own (a daemon:
+    the process may exit without it), and the workers still alive when its time is
+    up are killed.
     """
     stopper = threading.Thread(target=pool.terminate, name="condtrack-pool-stop", daemon=True)
     stopper.start()
