@@ -56,10 +56,9 @@ def frame_sums(gray: np.ndarray, side: int, cost: str = "ssd") -> FrameSums:
     look-up."""
     import cv2
 
-    frame = np.asarray(gray, np.float64)
-    window = (side, side)
-    total = cv2.boxFilter(frame, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
-    squares = cv2.sqrBoxFilter(frame, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
+    window = (side, side)  # float32 in, float64 sums: the same values as from a float64 copy, without making one
+    total = cv2.boxFilter(gray, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
+    squares = cv2.sqrBoxFilter(gray, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
     if cost == "ssd":
         return FrameSums(total, squares, None, side, cost)
     spread = np.multiply(total, total, out=total)  # max(squares - total^2 / side^2, 0), in place of total
