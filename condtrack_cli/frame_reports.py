@@ -108,10 +108,9 @@ class FrameStore:
 
     The backward pass (``pipeline.run``) reads them from here instead of decoding the
     input again: a folder's images and a video (which can only be decoded from its
-    start) are decoded once. The file
-    holds (last + 1) H W bytes (plain writes, not a memory map: the pages are the
-    system's cache, not the process's memory); the frames read back are those
-    decoded, bit for bit.
+    start) are decoded once. The file holds (last + 1) H W bytes (plain writes, not a
+    memory map: the pages are the system's cache, not the process's memory); the
+    frames read back are those decoded, bit for bit.
     """
 
     def __init__(self, path: Path, last: int):

@@ -122,8 +122,8 @@ def test_a_full_disk_while_keeping_the_frames_is_a_one_line_error(monkeypatch):
 
 
 def test_a_two_way_run_on_a_video_decodes_each_frame_once(tmp_path, monkeypatch):
-    """The backward pass used to decode a video again from its start in blocks of 64 frames (about last^2 / 128
-    decodes); it now reads the forward pass's frames back from the temporary folder."""
+    """The backward pass reads the forward pass's frames back from the temporary folder (``FrameStore``) instead of
+    decoding the video again from its start."""
     import cv2
 
     from condtrack_cli.frames import readers

@@ -39,11 +39,7 @@ FLOAT_FORMATS = {"x": "%.6f", "y": "%.6f", "cov_xx": "%.6e", "cov_xy": "%.6e", "
 
 
 def csv_text(tracks: Tracks) -> str:
-    """The long CSV (header included) of ``tracks``.
-
-    One %-format per row over Python scalars: the characters numpy's ``np.char.mod`` gives column by column
-    (it applies Python's % to each element too), without its per-column string arrays (issue 26).
-    """
+    """The long CSV (header included) of ``tracks``: one %-format per row (``FLOAT_FORMATS``) over Python scalars."""
     points, frames = np.nonzero(tracks.has_state)  # row-major: by point then frame
     xy = tracks.xy[points, frames]
     cov = tracks.cov[points, frames]
