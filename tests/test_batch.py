@@ -414,3 +414,81 @@ def test_a_pool_whose_shutdown_hangs_has_its_workers_killed(monkeypatch):
     worker.join(5)
     assert worker.exitcode == -signal.SIGKILL and time.monotonic() - started < 5
     stuck.set()
+
+
+def _batch_modules() -> dict[str, set[str]]:
+    """Each module of condtrack_cli.batch -> the modules of the package it imports (TYPE_CHECKING imports included)."""
+    import ast
+
+    import condtrack_cli.batch
+
+    package = Path(condtrack_cli.batch.__file__).parent
+    graph = {}
+    for path in package.glob("*.py"):
+        if path.stem == "__init__":
+            continue
+        imported = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("condtrack_cli.batch."):
+                imported.add(node.module.rsplit(".", 1)[1])
+            elif isinstance(node, ast.Import):
+                imported |= {a.name.rsplit(".", 1)[1] for a in node.names if a.name.startswith("condtrack_cli.batch.")}
+        graph[path.stem] = imported
+    return graph
+
+
+def test_the_batch_modules_import_each_other_in_one_direction():
+    """Issue 47.23: job and manifest imported each other. The package's import graph has no cycle, and the manifest
+    (what a record is, how it is read and written) needs none of the other modules."""
+    graph = _batch_modules()
+    assert graph["manifest"] == set() and {"job", "manifest", "plan", "local", "dask", "report", "status"} <= set(graph)
+    done: set[str] = set()
+
+    def visit(module: str, path: tuple[str, ...]) -> None:
+        assert module not in path, f"import cycle: {' -> '.join([*path, module])}"
+        if module not in done:
+            for imported in graph[module]:
+                visit(imported, (*path, module))
+            done.add(module)
+
+    for module in graph:
+        visit(module, ())
+
+
+@pytest.fixture
+def sigterm_restored():
+    """main() installs its own SIGTERM handler in this process: put the previous one back after the test."""
+    previous = signal.getsignal(signal.SIGTERM)
+    yield
+    signal.signal(signal.SIGTERM, previous)
+
+
+@pytest.mark.parametrize("moment", ["condtrack_cli.batch.job.track_input", "condtrack_cli.batch.publish"])
+def test_sigterm_between_an_output_and_its_record_leaves_them_agreeing(clips, tmp_path, monkeypatch, sigterm_restored,
+                                                                       moment):
+    """Issue 47.4: a SIGTERM just after a job published its output (before the batch wrote its record) left the output
+    in place and 'interrupted' in the manifest. The signal is raised here at that moment: right after the output is
+    written, and right after the batch moves it in place; either way an output is there if and only if its input's
+    manifest record says ok."""
+    from condtrack_cli.cli import main
+
+    target, name = moment.rsplit(".", 1)
+    real = getattr(__import__(target, fromlist=[name]), name)
+
+    def then_sigterm(*args, **kwargs):
+        result = real(*args, **kwargs)
+        signal.raise_signal(signal.SIGTERM)
+        return result
+
+    monkeypatch.setattr(moment, then_sigterm)
+    out_dir = tmp_path / "tracks"
+    monkeypatch.setattr(sys, "argv", ["condtrack", "track", *clips[:2], "-m", "stk", "--out-dir", str(out_dir), "-q"])
+    with pytest.raises(SystemExit) as stop:
+        main()
+    assert stop.value.code == 143
+    records = manifest(out_dir)
+    assert [r["input"] for r in records] == clips[:2]
+    assert {Path(r["output"]).name for r in records if r["status"] == "ok"} == set(outputs(out_dir))
+    assert [r["status"] for r in records] == (["interrupted"] * 2 if moment.endswith("track_input")
+                                              else ["ok", "interrupted"])
+    assert sorted(p.name for p in out_dir.iterdir()) == sorted([MANIFEST, *outputs(out_dir)])  # no staging left

@@ -3,9 +3,10 @@
 The modules follow a batch's flow, each called once from ``run_batch``:
 
 - ``plan``: inputs -> jobs (output names, shard, what --skip-existing skips), refusals before any work;
-- ``job``: one job, run in whichever process (the same bytes everywhere);
+- ``job``: one job, run in whichever process (the same bytes everywhere), writing into the batch's staging folder;
 - ``local`` / ``dask``: execute the jobs in a process pool or on a Dask cluster, and stop them on an interrupt;
-- ``manifest``: record each input's end in ``OUT_DIR/manifest.jsonl`` (``status`` reads it for ``condtrack status``);
+- ``manifest``: record each input's end in ``OUT_DIR/manifest.jsonl`` (``status`` reads it for ``condtrack status``),
+  with its output moved in place from the staging folder at the same moment (``run_batch``);
 - ``report``: a progress line per input, the final table and the failures.
 """
 
@@ -13,16 +14,21 @@ from __future__ import annotations
 
 import contextlib
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import click
 
 from condtrack_cli.batch.dask import connect_dask, run_dask
+from condtrack_cli.batch.job import interrupted_record, staged_output
 from condtrack_cli.batch.local import run_local, sigterm_exits
-from condtrack_cli.batch.manifest import ClipRecord, append_record, interrupted_record
+from condtrack_cli.batch.manifest import ClipRecord, append_record
 from condtrack_cli.batch.plan import plan_batch
 from condtrack_cli.batch.report import ClipProgress, report_end
 from condtrack_cli.config import Config
+from condtrack_cli.errors import CondtrackError
+from condtrack_cli.interrupts import held_signals
+from condtrack_cli.io.atomic import publish, staging_folder
 from condtrack_cli.threads import requested_threads, threads_per_job
 
 
@@ -55,18 +61,22 @@ def run_batch(
         records: dict[str, ClipRecord] = {}
 
         def finished(record: ClipRecord) -> None:
-            append_record(Path(out_dir), record)
-            records[record.input] = record
+            with held_signals():  # an output is in place if and only if its manifest line says ok
+                record = _published(record, staging)
+                append_record(Path(out_dir), record)
+                records[record.input] = record
             progress(record)
 
-        with sigterm_exits():
+        # The jobs write into a staging folder, removed as the batch ends with what was not moved in place.
+        with sigterm_exits(), staging_folder(Path(out_dir) / "outputs") as staging:
             for record in plan.skipped:
                 finished(record)
+            todo = [replace(job, staging=str(staging)) for job in plan.todo]
             try:
                 if on_dask:
-                    run_dask(plan.todo, client, finished)
+                    run_dask(todo, client, finished)
                 else:
-                    run_local(plan.todo, jobs, finished)
+                    run_local(todo, jobs, finished)
             except (KeyboardInterrupt, SystemExit):  # the manifest says what did not end
                 for job in plan.todo:
                     if job.input not in records:
@@ -74,3 +84,14 @@ def run_batch(
                 raise
     if report_end([records[job.input] for job in plan.jobs], config.method, Path(out_dir), quiet):
         sys.exit(1)
+
+
+def _published(record: ClipRecord, staging: Path) -> ClipRecord:
+    """``record`` once its output (an ``ok`` one's) is moved from ``staging`` in place; ``failed`` if it cannot be."""
+    if record.status != "ok":
+        return record
+    try:
+        publish(staged_output(staging, record.output), record.output)
+    except CondtrackError as error:
+        return replace(record, status="failed", error=str(error))
+    return record

@@ -8,8 +8,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Callable
 
-from condtrack_cli.batch.job import BatchJob, run_job
-from condtrack_cli.batch.manifest import ClipRecord, job_record
+from condtrack_cli.batch.job import BatchJob, job_record, run_job
+from condtrack_cli.batch.manifest import ClipRecord
 from condtrack_cli.errors import CondtrackError, read_error
 from condtrack_cli.interrupts import held_signals
 

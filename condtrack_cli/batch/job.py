@@ -1,18 +1,24 @@
-"""One job of a batch: ``BatchJob`` (input -> output, picklable) and ``run_job``, its run in whichever process.
+"""One job of a batch: ``BatchJob`` (input -> output, picklable), ``run_job``, its run in whichever process, and
+``job_record``, the manifest record it ends with.
 
 ``run_local`` and ``run_dask`` both run ``run_job``, so the outputs are the same
-bytes; on Dask the job also looks at its batch's stop Event while it runs.
+bytes; on Dask the job also looks at its batch's stop Event while it runs. The
+job writes its output into the batch's staging folder; the batch moves it in
+place when it records the job's end (``run_batch``), so an interrupt never
+leaves an output without its manifest line.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
-from condtrack_cli.batch.manifest import ClipRecord, job_record
+from condtrack_cli import __version__
+from condtrack_cli.batch.manifest import ClipRecord
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.hashes import queries_hash
+from condtrack_cli.hashes import config_hash, queries_hash
 from condtrack_cli.run import track_input
 from condtrack_cli.threads import threads_in_use, use_threads
 
@@ -31,7 +37,28 @@ class BatchJob:
     seed: int
     threads: int | None  #: threads of this job (None: every core the process may use)
     input_fingerprint: str = ""  #: ``hashes.input_fingerprint`` of the input when the batch was planned
+    cwd: str = ""  #: the batch's working directory (absolute): what a relative ``input`` or ``output`` is read from
+    staging: str = ""  #: the batch's staging folder, where ``run_job`` writes the output (set by ``run_batch``)
     stop_event: str | None = None  #: on Dask: the name of the batch's stop Event, checked while the job runs
+
+
+def staged_output(staging: str | Path, output: str) -> Path:
+    """Where a job writes ``output`` before the batch moves it in place: the same name in the staging folder."""
+    return Path(staging) / Path(output).name
+
+
+def job_record(job: BatchJob, status: str, **values) -> ClipRecord:
+    """The manifest record of ``job`` with ``status``; ``values`` give the other fields (queries_hash included)."""
+    return ClipRecord(
+        input=job.input, output=job.output, status=status, method=job.config.method,
+        config_hash=config_hash(job.config), version=__version__, seed=job.seed,
+        input_fingerprint=job.input_fingerprint, cwd=job.cwd, **values,
+    )
+
+
+def interrupted_record(job: BatchJob) -> ClipRecord:
+    """The manifest record of a job that the batch's interrupt stopped (or never started)."""
+    return job_record(job, "interrupted", error="interrupted", seconds=0.0, frames=None, points=None, queries_hash="")
 
 
 class Cancelled(CondtrackError):
@@ -57,12 +84,13 @@ class _StopCheck:
 
 
 def run_job(job: BatchJob) -> ClipRecord:
-    """Track one input into its output (in whichever process runs it); a bad input gives a ``failed`` record."""
+    """Track one input into its staged output (in whichever process runs it); a bad input gives a ``failed`` record."""
     use_threads(job.threads)
     started = time.perf_counter()
     stop_check = _StopCheck(job.stop_event) if job.stop_event else None
     try:
-        summary = track_input(job.input, job.config, job.queries_path, job.output, job.seed, stop_check)
+        summary = track_input(job.input, job.config, job.queries_path, str(staged_output(job.staging, job.output)),
+                              job.seed, stop_check)
         digest = queries_hash(job.queries_path)
     except CondtrackError as error:
         return job_record(job, "failed", error=str(error), seconds=round(time.perf_counter() - started, 3),

@@ -11,25 +11,25 @@ import json
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-from condtrack_cli import __version__
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.hashes import config_hash
-
-if TYPE_CHECKING:
-    from condtrack_cli.batch.job import BatchJob
 
 MANIFEST = "manifest.jsonl"
+
+#: A record's statuses: "interrupted" when the batch was stopped before the input ended.
+RECORD_STATUSES = ("ok", "failed", "skipped", "interrupted")
+
+#: The Python types of the JSON values a record's fields are checked against (``read_manifest``).
+JSON_TYPES = {"string": str, "integer": int, "number": (int, float)}
 
 
 @dataclass(frozen=True)
 class ClipRecord:
-    """One manifest line: what became of one input (``seconds`` is the job's wall time, start to published output)."""
+    """One manifest line: what became of one input (``seconds`` is the job's wall time, start to written output)."""
 
     input: str
     output: str
-    status: str  #: "ok", "failed", "skipped" or "interrupted" (the batch was stopped before the input ended)
+    status: str  #: one of ``RECORD_STATUSES``
     error: str | None
     seconds: float
     frames: int | None
@@ -42,40 +42,58 @@ class ClipRecord:
     input_fingerprint: str = ""  #: ``hashes.input_fingerprint`` of the input
     visible: float | None = None  #: share of the tracked rows that are visible
     threads: dict = field(default_factory=dict)  #: what the job's process used: opencv, omp
+    cwd: str = ""  #: the batch's working directory, against which a relative ``input`` or ``output`` is read
 
     def to_json(self) -> str:
         return json.dumps(asdict(self), sort_keys=False)
 
 
-def job_record(job: BatchJob, status: str, **values) -> ClipRecord:
-    """The manifest record of ``job`` with ``status``; ``values`` give the other fields (queries_hash included)."""
-    return ClipRecord(
-        input=job.input, output=job.output, status=status, method=job.config.method,
-        config_hash=config_hash(job.config), version=__version__, seed=job.seed,
-        input_fingerprint=job.input_fingerprint, **values,
-    )
+def read_manifest(out_dir: Path, fields: dict[str, str] | None = None) -> list[dict]:
+    """The manifest's records, oldest first; [] without a manifest.
 
-
-def interrupted_record(job: BatchJob) -> ClipRecord:
-    """The manifest record of a job that the batch's interrupt stopped (or never started)."""
-    return job_record(job, "interrupted", error="interrupted", seconds=0.0, frames=None, points=None, queries_hash="")
-
-
-def read_manifest(out_dir: Path) -> list[dict]:
-    """The manifest's records, oldest first (a line cut short by a kill is ignored); [] without a manifest."""
+    A last line cut short by a kill (no newline) is ignored. Other broken lines
+    are skipped, unless ``fields`` (name -> a ``JSON_TYPES`` name) is given: then a line that
+    is not a JSON object with those fields, or whose status is not one of
+    ``RECORD_STATUSES``, is a CondtrackError naming the file and the line.
+    """
+    path = out_dir / MANIFEST
     try:
-        lines = (out_dir / MANIFEST).read_text(encoding="utf-8").splitlines()
+        text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         return []
     except OSError as error:
-        raise CondtrackError(f"{out_dir / MANIFEST}: cannot read ({error.strerror})") from None
+        raise CondtrackError(f"{path}: cannot read ({error.strerror})") from None
+    except UnicodeDecodeError:
+        raise CondtrackError(f"{path}: not UTF-8 text") from None
+    lines = text.splitlines()
     records = []
-    for line in lines:
+    for number, line in enumerate(lines, 1):
         try:
-            records.append(json.loads(line))
+            record = json.loads(line)
         except json.JSONDecodeError:
-            continue
+            if fields is None or (number == len(lines) and not text.endswith("\n")):
+                continue
+            raise CondtrackError(f"{path}, line {number}: not a JSON record") from None
+        if fields is not None:
+            problem = _record_problem(record, fields)
+            if problem:
+                raise CondtrackError(f"{path}, line {number}: {problem}")
+        records.append(record)
     return records
+
+
+def _record_problem(record, fields: dict[str, str]) -> str | None:
+    """What makes ``record`` not a manifest record with ``fields`` (name -> a ``JSON_TYPES`` name); None if it is one."""
+    if not isinstance(record, dict):
+        return "not a JSON object"
+    for name, kind in fields.items():
+        if name not in record:
+            return f"the record has no '{name}'"
+        if not isinstance(record[name], JSON_TYPES[kind]) or isinstance(record[name], bool):
+            return f"'{name}' is {json.dumps(record[name])}, not a {kind}"
+    if "status" in fields and record["status"] not in RECORD_STATUSES:
+        return f"unknown status {json.dumps(record['status'])} (not one of {', '.join(RECORD_STATUSES)})"
+    return None
 
 
 def append_record(out_dir: Path, record: ClipRecord) -> None:

@@ -23,8 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from condtrack_cli import __version__
-from condtrack_cli.batch.job import BatchJob
-from condtrack_cli.batch.manifest import ClipRecord, job_record, read_manifest
+from condtrack_cli.batch.job import BatchJob, job_record
+from condtrack_cli.batch.manifest import ClipRecord, read_manifest
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.hashes import config_hash, input_fingerprint, queries_hash
@@ -140,7 +140,8 @@ def plan_batch(
         raise CondtrackError(f"--out-dir '{out_dir}': cannot create the folder ({error.strerror})") from None
     if not os.access(out_dir, os.W_OK | os.X_OK):
         raise CondtrackError(f"--out-dir '{out_dir}' is not writable")
-    jobs = [BatchJob(i, str(out_dir / f"{n}{suffix}"), config, queries_path, seed, threads, input_fingerprint(i))
+    cwd = os.getcwd()
+    jobs = [BatchJob(i, str(out_dir / f"{n}{suffix}"), config, queries_path, seed, threads, input_fingerprint(i), cwd)
             for i, n in zip(inputs, names)]
     if shard_spec is not None:
         jobs = shard(jobs, *shard_spec)
