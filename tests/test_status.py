@@ -4,25 +4,31 @@ from __future__ import annotations
 
 import json
 import shlex
+import signal
+import sys
 
+import pytest
 from click.testing import CliRunner
 
 from condtrack_cli import __version__
 from condtrack_cli.batch.manifest import ClipRecord, append_record
-from condtrack_cli.cli import cli
+from condtrack_cli.cli import cli, main
 from condtrack_cli.config import load_config
 from condtrack_cli.errors import MissingInput
+from condtrack_cli.frames.synthetic import make_scene, write_scene
 from condtrack_cli.hashes import config_hash
 
 STK = config_hash(load_config(None, [], "stk"))
 
 
-def record(out_dir, name: str, status: str, seconds: float, error: str | None = None, suffix=".h5", config=STK):
-    """Append a manifest line for data/<name>/frames, written to OUT_DIR/<name>_frames<suffix>."""
+def record(out_dir, name: str, status: str, seconds: float, error: str | None = None, suffix=".h5", config=STK,
+           cwd=""):
+    """Append a manifest line for data/<name>/frames, written to OUT_DIR/<name>_frames<suffix>; ``cwd``: the batch's
+    folder ("": not recorded, as in older manifests)."""
     append_record(out_dir, ClipRecord(
         input=f"data/{name}/frames", output=str(out_dir / f"{name}_frames{suffix}"), status=status, error=error,
         seconds=seconds, frames=None if error else 5, points=None if error else 12, method="stk",
-        config_hash=config, version=__version__, seed=0, queries_hash=""))
+        config_hash=config, version=__version__, seed=0, queries_hash="", cwd=cwd))
 
 
 def status(*args: str):
@@ -49,16 +55,18 @@ def test_retries_a_failure_a_skip_and_a_lost_output(tmp_path):
         "skipped  data/clip002/frames  " + str(out / "clip002_frames.h5") + " (2 attempts)",
         "missing  data/clip003/frames  " + str(out / "clip003_frames.h5") + " is gone",
         "4 inputs: 1 ok, 1 failed, 1 skipped, 1 missing; 2.8 s in their latest runs, 8.2 s in all",
-        "redo the failed and missing inputs (from the folder the batch ran in):",
+        "redo the failed, interrupted and missing inputs:",
         f"  condtrack track data/clip001/frames data/clip003/frames --out-dir {out} -m stk --seed 0",
+        "  # -m stk: the manifest does not say which folder the batch ran in; run the command from there",
     ]
     report = json.loads(status(str(out), "--json").stdout)
-    assert report["counts"] == {"ok": 1, "failed": 1, "skipped": 1, "missing": 1}
+    assert report["counts"] == {"ok": 1, "failed": 1, "interrupted": 0, "skipped": 1, "missing": 1}
     assert [(i["input"], i["status"], i["attempts"]) for i in report["inputs"]] == [
         ("data/clip000/frames", "ok", 2), ("data/clip001/frames", "failed", 2), ("data/clip002/frames", "skipped", 2),
         ("data/clip003/frames", "missing", 1)]
     assert report["inputs"][1]["error"].endswith("not a readable image") and report["seconds"] == 2.75
-    assert report["seconds_all_attempts"] == 8.25 and report["notes"] == []
+    assert report["seconds_all_attempts"] == 8.25 and report["notes"] == [
+        "-m stk: the manifest does not say which folder the batch ran in; run the command from there"]
 
 
 def test_the_redo_keeps_the_output_names_and_says_what_it_cannot_know(tmp_path):
@@ -70,10 +78,11 @@ def test_the_redo_keeps_the_output_names_and_says_what_it_cannot_know(tmp_path):
     (out / "y_frames.csv").write_text("")
     result = status(str(out))
     assert result.exit_code == 1
-    assert result.stdout.splitlines()[-2:] == [
+    assert result.stdout.splitlines()[-3:] == [
         f"  condtrack track data/x/frames data/y/frames --out-dir {out} -m stk --seed 0 --format csv --skip-existing",
+        "  # -m stk: the manifest does not say which folder the batch ran in; run the command from there",
         "  # -m stk: the batch's config is not that method's defaults; add its -c/--set options"]
-    assert shlex.split(result.stdout.splitlines()[-2])[2:4] == ["data/x/frames", "data/y/frames"]
+    assert shlex.split(result.stdout.splitlines()[-3])[2:4] == ["data/x/frames", "data/y/frames"]
 
 
 def test_all_done_exits_0_and_a_folder_without_manifest_is_an_error(tmp_path):
@@ -87,3 +96,101 @@ def test_all_done_exits_0_and_a_folder_without_manifest_is_an_error(tmp_path):
     assert isinstance(result.exception, MissingInput) and "manifest.jsonl: no manifest records" in str(result.exception)
     result = status(str(tmp_path / "nowhere"))
     assert result.exit_code == 2 and "does not exist" in result.output
+
+
+def _main(args: list[str], monkeypatch, capsys) -> tuple[int, str, str]:
+    """Run the console entry point here; (exit code, stdout, stderr)."""
+    monkeypatch.setattr(sys, "argv", ["condtrack", *args])
+    previous = signal.getsignal(signal.SIGTERM)  # main() installs its own
+    try:
+        with pytest.raises(SystemExit) as stop:
+            main()
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    captured = capsys.readouterr()
+    return stop.value.code, captured.out, captured.err
+
+
+def test_a_batch_run_elsewhere_and_resumed_with_other_paths_is_two_inputs_found_in_place(tmp_path, monkeypatch, capsys):
+    """Issue 47.1 and 47.2: a batch run in work/ with relative paths, resumed from the parent folder with paths typed
+    otherwise, read by status from the parent folder: its outputs were 'missing' (looked for from the current
+    folder) and each input counted twice."""
+    work = tmp_path / "work"
+    for seed, name in enumerate(("c1", "c2")):
+        write_scene(make_scene("camera_motion", seed=seed, size=(160, 120), n_frames=3), work / "data" / name)
+    monkeypatch.chdir(work)
+    assert _main(["track", "data/c1", "./data/c2", "-m", "stk", "--out-dir", "out", "-q"], monkeypatch, capsys)[:2] == (
+        0, "")
+    monkeypatch.chdir(tmp_path)
+    code, _, err = _main(["track", "work/data/c1", "work/data//c2", "-m", "stk", "--out-dir", "work/out", "-q",
+                          "--skip-existing"], monkeypatch, capsys)
+    assert (code, err) == (0, "")
+    code, out, _ = _main(["status", "work/out"], monkeypatch, capsys)
+    assert code == 0
+    assert out.splitlines()[:3] == [f"skipped  {work}/data/c1  work/out/c1.h5 (2 attempts)",
+                                    f"skipped  {work}/data/c2  work/out/c2.h5 (2 attempts)",
+                                    "2 inputs: 2 skipped" + out.splitlines()[2][len("2 inputs: 2 skipped"):]]
+    (work / "out" / "c2.h5").unlink()
+    monkeypatch.chdir(work / "data")  # the redo names absolute paths: it runs from any folder
+    code, out, _ = _main(["status", "../out"], monkeypatch, capsys)
+    assert code == 0 and out.splitlines()[1] == f"missing  {work}/data/c2  ../out/c2.h5 is gone (2 attempts)"
+    assert out.splitlines()[-1] == f"  condtrack track {work}/data/c2 --out-dir {work}/out -m stk --seed 0"
+
+
+def test_interrupted_inputs_are_counted_and_redone_without_an_output(tmp_path):
+    """Issue 47.3: interrupted inputs were not counted, were shown with an output they do not have, were not in the
+    redo command, and status exited 0."""
+    out = tmp_path / "o"
+    out.mkdir()
+    folder = str(tmp_path)
+    record(out, "a", "ok", 2.0, cwd=folder)
+    (out / "a_frames.h5").write_bytes(b"")
+    record(out, "b", "interrupted", 0.0, "interrupted", cwd=folder)
+    record(out, "c", "interrupted", 0.0, "interrupted", cwd=folder)
+    result = status(str(out))
+    assert result.exit_code == 1  # as for a failed input: the batch's own record says the input did not end
+    assert result.stdout.splitlines() == [
+        f"ok           {folder}/data/a/frames  {out}/a_frames.h5",
+        f"interrupted  {folder}/data/b/frames  stopped before it ended: no output",
+        f"interrupted  {folder}/data/c/frames  stopped before it ended: no output",
+        "3 inputs: 1 ok, 2 interrupted; 2.0 s in their latest runs, 2.0 s in all",
+        "redo the failed, interrupted and missing inputs:",
+        f"  condtrack track {folder}/data/b/frames {folder}/data/c/frames --out-dir {out} -m stk --seed 0",
+    ]
+    report = json.loads(status(str(out), "--json").stdout)
+    assert report["counts"] == {"ok": 1, "failed": 0, "interrupted": 2, "skipped": 0, "missing": 0}
+    assert [item["output"] for item in report["inputs"]] == [str(out / "a_frames.h5"), None, None]
+    assert report["redo"] == [result.stdout.splitlines()[-1].strip()] and report["notes"] == []
+
+
+@pytest.mark.parametrize("line, problem", [
+    ('{"input": "a", "output": "a.h5", "seconds": 1, "method": "stk", "seed": 0, "config_hash": ""}',
+     "the record has no 'status'"),
+    ('{"input": "a", "status": "ok", "seconds": 1, "method": "stk", "seed": 0, "config_hash": ""}',
+     "the record has no 'output'"),
+    ('{"input": "a", "output": "a.h5", "status": "ok", "method": "stk", "seed": 0, "config_hash": ""}',
+     "the record has no 'seconds'"),
+    ('{"input": "a", "output": "a.h5", "status": "ok", "seconds": "1", "method": "stk", "seed": 0, '
+     '"config_hash": ""}', "'seconds' is \"1\", not a number"),
+    ('{"input": "a", "output": "a.h5", "status": "done", "seconds": 1, "method": "stk", "seed": 0, '
+     '"config_hash": ""}', 'unknown status "done" (not one of ok, failed, skipped, interrupted)'),
+    ('{"input": "a", "output": "a.h', "not a JSON record"),
+    ("[1, 2]", "not a JSON object"),
+])
+def test_a_broken_manifest_line_is_named(tmp_path, monkeypatch, capsys, line, problem):
+    """Issue 47.9: a record without 'status' was a KeyError traceback; a broken line was silently skipped."""
+    record(tmp_path, "a", "ok", 1.0)
+    with open(tmp_path / "manifest.jsonl", "a") as manifest:
+        manifest.write(line + "\n")
+    record(tmp_path, "b", "ok", 1.0)
+    assert _main(["status", str(tmp_path)], monkeypatch, capsys) == (
+        1, "", f"Error: {tmp_path / 'manifest.jsonl'}, line 2: {problem}\n")
+
+
+def test_a_last_line_cut_short_by_a_kill_is_ignored(tmp_path):
+    record(tmp_path, "a", "ok", 1.0)
+    (tmp_path / "a_frames.h5").write_bytes(b"")
+    with open(tmp_path / "manifest.jsonl", "a") as manifest:
+        manifest.write('{"input": "data/b/frames", "outp')
+    result = status(str(tmp_path))
+    assert result.exit_code == 0 and result.stdout.startswith("1 inputs: 1 ok", len(result.stdout.splitlines()[0]) + 1)

@@ -2,12 +2,17 @@
 
 ``OUT_DIR/manifest.jsonl`` gains a line per attempt (``manifest.ClipRecord``); a
 resumed or retried batch leaves several per input, and the last one counts.
-An input whose last record is ``ok`` or ``skipped`` but whose output file is
-gone is ``missing``.
+An input is one input however its path was typed: records that name the same
+file, read from their batch's working directory (``cwd``, absent from older
+manifests, whose paths are taken as written), are one input's. Outputs are
+looked for in OUT_DIR, where a batch writes them, whatever folder the batch or
+``status`` runs in; an input whose last record is ``ok`` or ``skipped`` but
+whose output file is gone is ``missing``.
 """
 
 from __future__ import annotations
 
+import os
 import shlex
 from collections import Counter
 from dataclasses import asdict, dataclass
@@ -20,16 +25,24 @@ from condtrack_cli.errors import CondtrackError, MissingInput
 from condtrack_cli.hashes import config_hash
 
 #: The statuses in the order they are counted.
-STATUSES = ("ok", "failed", "skipped", "missing")
+STATUSES = ("ok", "failed", "interrupted", "skipped", "missing")
+
+#: The statuses whose inputs the redo commands run again.
+REDONE = ("failed", "interrupted", "missing")
+
+#: The fields ``status`` reads from every record, with their JSON types (``manifest.JSON_TYPES``).
+STATUS_FIELDS = {"input": "string", "output": "string", "status": "string", "seconds": "number",
+                 "method": "string", "seed": "integer", "config_hash": "string"}
 
 
 @dataclass(frozen=True)
 class InputStatus:
-    """One input's latest record: ``status`` one of ``STATUSES``, ``error`` the failure's one-line reason."""
+    """One input's latest record: ``status`` one of ``STATUSES``, ``error`` the failure's one-line reason,
+    ``output`` None for an interrupted input (it has none)."""
 
     input: str
     status: str
-    output: str
+    output: str | None
     error: str | None
     seconds: float
     attempts: int
@@ -45,7 +58,7 @@ class BatchStatus:
     inputs: list[InputStatus]
     seconds: float
     seconds_all_attempts: float
-    redo: list[str]  #: commands that redo the failed and missing inputs (one per method, seed and format)
+    redo: list[str]  #: commands that redo the failed, interrupted and missing inputs (one per method, seed and format)
     notes: list[str]  #: what the redo commands cannot know and the user must add
 
     @property
@@ -57,49 +70,66 @@ class BatchStatus:
         return {**asdict(self), "counts": self.counts}
 
 
+def batch_path(record: dict, path: str) -> str:
+    """``path`` as written in ``record``, made absolute from the record's batch folder (as written without one)."""
+    return os.path.abspath(os.path.join(record["cwd"], path)) if record.get("cwd") else path
+
+
+def input_identity(record: dict) -> str:
+    """What tells ``record``'s input apart: its resolved absolute path (as written when it cannot be made absolute)."""
+    shown = batch_path(record, record["input"])
+    return os.path.realpath(shown) if os.path.isabs(shown) else shown
+
+
 def batch_status(out_dir: str | Path) -> BatchStatus:
-    """Read ``out_dir``'s manifest into a :class:`BatchStatus`; CondtrackError without one."""
+    """Read ``out_dir``'s manifest into a :class:`BatchStatus`; CondtrackError without one or with a broken line."""
     out_dir = Path(out_dir)
-    records = read_manifest(out_dir)
+    records = read_manifest(out_dir, STATUS_FIELDS)
     if not records:
         raise MissingInput(f"{out_dir / MANIFEST}: no manifest records (not a batch's --out-dir?)")
     latest: dict[str, dict] = {}
-    attempts = Counter(record["input"] for record in records)
+    attempts = Counter(input_identity(record) for record in records)
     for record in records:
-        latest[record["input"]] = record
+        latest[input_identity(record)] = record
     inputs = []
-    for name, record in latest.items():
-        status = record["status"]
-        if status in ("ok", "skipped") and not Path(record["output"]).exists():
+    for identity, record in latest.items():
+        status, output = record["status"], str(out_dir / Path(record["output"]).name)
+        if status in ("ok", "skipped") and not Path(output).exists():
             status = "missing"
-        inputs.append(InputStatus(name, status, record["output"], record.get("error"), float(record["seconds"]),
-                                  attempts[name], record["method"], int(record["seed"])))
-    redo, notes = _redo(out_dir, inputs, latest, records)
+        inputs.append(InputStatus(batch_path(record, record["input"]), status,
+                                  None if status == "interrupted" else output, record.get("error"),
+                                  float(record["seconds"]), attempts[identity], record["method"], int(record["seed"])))
+    redo, notes = _redo(inputs, list(latest.values()), records)
     return BatchStatus(str(out_dir), inputs, sum(item.seconds for item in inputs),
                        sum(float(record["seconds"]) for record in records), redo, notes)
 
 
-def _redo(out_dir: Path, inputs: list[InputStatus], latest: dict[str, dict],
-          records: list[dict]) -> tuple[list[str], list[str]]:
-    """``condtrack track`` commands for the failed and missing inputs, and notes on the options they lack.
+def _redo(inputs: list[InputStatus], latest: list[dict], records: list[dict]) -> tuple[list[str], list[str]]:
+    """``condtrack track`` commands for the failed, interrupted and missing inputs, and notes on the options they lack.
 
-    The failed ones alone when their output names come out as before; otherwise every input of the
-    manifest with --skip-existing (output names depend on the whole list).
+    ``latest``: each input's latest record, in the order of ``inputs``. The
+    inputs to redo alone when their output names come out as before; otherwise
+    every input of the manifest with --skip-existing (output names depend on the
+    whole list). The paths are absolute when the manifest has the batch's folder.
     """
-    groups: dict[tuple[str, int, str], list[InputStatus]] = {}
-    for item in inputs:
-        if item.status in ("failed", "missing"):
-            groups.setdefault((item.method, item.seed, Path(item.output).suffix), []).append(item)
+    groups: dict[tuple[str, int, str], list[tuple[InputStatus, dict]]] = {}
+    for item, record in zip(inputs, latest):
+        if item.status in REDONE:
+            groups.setdefault((item.method, item.seed, Path(record["output"]).suffix), []).append((item, record))
     commands, notes = [], []
     for (method, seed, suffix), todo in groups.items():
-        names = [item.input for item in todo]
+        names = [item.input for item, _ in todo]
         skip = []
-        if output_names(names) != [Path(item.output).stem for item in todo]:
-            names, skip = list(latest), ["--skip-existing"]
-        options = ["--out-dir", str(out_dir), "-m", method, "--seed", str(seed)]
+        if output_names(names) != [Path(record["output"]).stem for _, record in todo]:
+            names, skip = [item.input for item in inputs], ["--skip-existing"]
+        first = todo[0][1]
+        options = ["--out-dir", batch_path(first, str(Path(first["output"]).parent)), "-m", method, "--seed", str(seed)]
         options += ["--format", "csv"] if suffix == ".csv" else []
         commands.append(shlex.join(["condtrack", "track", *names, *options, *skip]))
-        if not _default_config(method, latest[todo[0].input]["config_hash"]):
+        if not all(os.path.isabs(path) for path in [*names, options[1]]):
+            notes.append(f"-m {method}: the manifest does not say which folder the batch ran in; run the command "
+                         "from there")
+        if not _default_config(method, first["config_hash"]):
             notes.append(f"-m {method}: the batch's config is not that method's defaults; add its -c/--set options")
         if any(record.get("queries_hash") for record in records if record["method"] == method):
             notes.append(f"-m {method}: the batch had a queries file; add its -p option")

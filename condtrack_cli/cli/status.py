@@ -14,10 +14,11 @@ import click
 def status_command(out_dir: str, as_json: bool) -> None:
     """Show what became of each input of the batch written into OUT_DIR (its manifest.jsonl).
 
-    Per input its latest record: ok, failed (with the reason), skipped, or
-    missing (recorded as done but its output is gone); then the counts, the
-    time taken and the command that redoes the failed and missing inputs.
-    The exit code is 1 when an input's latest record is failed.
+    Per input its latest record: ok, failed (with the reason), interrupted
+    (the batch was stopped before it ended: no output), skipped, or missing
+    (recorded as done but its output is gone); then the counts, the time taken
+    and the command that redoes the failed, interrupted and missing inputs.
+    The exit code is 1 when an input's latest record is failed or interrupted.
     """
     from condtrack_cli.batch.status import batch_status
 
@@ -26,22 +27,27 @@ def status_command(out_dir: str, as_json: bool) -> None:
         click.echo(json.dumps(status.to_json(), indent=2))
     else:
         _print(status)
-    if status.counts["failed"]:
+    if status.counts["failed"] or status.counts["interrupted"]:
         sys.exit(1)
+
+
+#: What ``status`` shows for an interrupted input in place of an output.
+NOT_ENDED = "stopped before it ended: no output"
 
 
 def _print(status) -> None:
     width = max(len(item.input) for item in status.inputs)
+    status_width = max(8, 1 + max(len(item.status) for item in status.inputs))
     for item in status.inputs:
-        detail = item.error if item.status == "failed" else item.output
+        detail = {"failed": item.error, "interrupted": NOT_ENDED}.get(item.status, item.output)
         if item.status == "missing":
             detail += " is gone"
         tries = f" ({item.attempts} attempts)" if item.attempts > 1 else ""
-        click.echo(f"{item.status:8s} {item.input:{width}s}  {detail}{tries}")
+        click.echo(f"{item.status:{status_width}s} {item.input:{width}s}  {detail}{tries}")
     counts = ", ".join(f"{count} {name}" for name, count in status.counts.items() if count)
     click.echo(f"{len(status.inputs)} inputs: {counts}; {status.seconds:.1f} s in their latest runs, "
                f"{status.seconds_all_attempts:.1f} s in all")
     if status.redo:
-        click.echo("redo the failed and missing inputs (from the folder the batch ran in):")
+        click.echo("redo the failed, interrupted and missing inputs:")
         for line in status.redo + [f"# {note}" for note in status.notes]:
             click.echo(f"  {line}")
