@@ -176,7 +176,7 @@ def test_interrupted_inputs_are_counted_and_redone_without_an_output(tmp_path):
      '"config_hash": ""}', 'unknown status "done" (not one of ok, failed, skipped, interrupted)'),
     ('{"input": "a", "output": "a.h', "not a JSON record"),
     ("[1, 2]", "not a JSON object"),
-])
+], ids=["no status", "no output", "no seconds", "seconds a string", "unknown status", "broken JSON", "a list"])
 def test_a_broken_manifest_line_is_named(tmp_path, monkeypatch, capsys, line, problem):
     """Issue 47.9: a record without 'status' was a KeyError traceback; a broken line was silently skipped."""
     record(tmp_path, "a", "ok", 1.0)

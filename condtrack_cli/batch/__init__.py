@@ -61,7 +61,7 @@ def run_batch(
         records: dict[str, ClipRecord] = {}
 
         def finished(record: ClipRecord) -> None:
-            with held_signals():  # an output is in place if and only if its manifest line says ok
+            with held_signals():  # no interrupt between moving the output in place and writing its line
                 record = _published(record, staging)
                 append_record(Path(out_dir), record)
                 records[record.input] = record
