@@ -19,6 +19,7 @@ from click.testing import CliRunner
 
 from condtrack_cli.cli import cli
 from condtrack_cli.evaluate import paper_figures
+from condtrack_cli.evaluate.bench import __main__ as bench_main
 from conftest import REPO, SAMPLES, shared_sequence
 
 #: The documents whose tables of numbers must say where they come from.
@@ -167,3 +168,44 @@ def test_the_readme_summary_line_is_what_its_command_prints(tmp_path, monkeypatc
     expected = re.escape(re.sub(seconds, "SECONDS", shown)).replace("SECONDS", seconds)
     assert re.fullmatch(expected, printed), f"README shows {shown!r}, the command prints {printed!r}"
     assert (tmp_path / "tracks.csv").is_file()
+
+
+# --- bench/results.md: today's tables, the history apart (issue 47, item 22) ---------------------------------
+
+#: A reader finds a section's first table within this many lines of its heading (about one screen).
+SCREEN = 40
+
+
+def sections(text: str) -> dict[str, list[str]]:
+    """``## `` heading -> the section's lines after it."""
+    found: dict[str, list[str]] = {}
+    current = None
+    for line in text.splitlines():
+        if line.startswith("## "):
+            current = line
+            found[current] = []
+        elif current is not None:
+            found[current].append(line)
+    return found
+
+
+def test_make_bench_keeps_the_sections_it_does_not_write():
+    old = "# t\n\nintro\n\n## Speed (issue 13)\n\nold speed\n\n## Hard cases (issue 31)\n\n| a |\n\n## Many clips\n\nx\n"
+    assert bench_main.other_sections(old) == ["## Hard cases (issue 31)", "", "| a |", ""]
+    assert bench_main.other_sections("# t\n\nno sections\n") == []
+
+
+def test_results_md_holds_todays_tables_and_points_to_the_history():
+    results = (REPO / "bench" / "results.md").read_text(encoding="utf-8")
+    history = (REPO / "bench" / "history.md").read_text(encoding="utf-8")
+    assert results.startswith("# condtrack benchmark\n\n" + "\n".join(bench_main.INTRO) + "\n")  # as make bench writes it
+    assert "`bench/history.md`" in results
+    found = sections(results)
+    late = [heading for heading, lines in found.items() if any(line.startswith("|") for line in lines)
+            and not any(line.startswith("|") for line in lines[:SCREEN])]
+    assert not late, f"sections whose first table is more than {SCREEN} lines down: {late}"
+    assert len(results.splitlines()) < 500
+    titles = {heading[3:].split(" (")[0] for heading in found}
+    assert titles >= set(bench_main.WRITTEN_SECTIONS) - {"Covariance calibration"}
+    # every section of the history is one of results.md's, so a reader finds the history of what they read
+    assert {heading for heading in sections(history)} <= set(found)
