@@ -21,6 +21,9 @@ peak memory by clip length (``memory_table``).
 ``--hard tune|report`` prints only issue 31's hard cases (``hard.py``) on the tuning
 or the reporting seeds.
 
+The full run rewrites ``--out`` but keeps the sections of the existing file it does not write
+(``other_sections``: the narrower runs pasted in, such as ``--hard report``), after its own.
+
 ``--support SEQUENCE`` prints instead the dominant model's one-step prediction
 error by neighbourhood support (the measurement behind ``auto``'s thresholds),
 then the one-step error of the dominant model and of the local field with and
@@ -43,6 +46,32 @@ from condtrack_cli.evaluate.bench.common import REPO
 from condtrack_cli.evaluate.bench.hard import REPORT_SEEDS, TUNE_SEEDS, hard_cases_table
 from condtrack_cli.evaluate.bench.speed import batch_table, memory_table, profile_table, speed_table
 from condtrack_cli.evaluate.bench.versus_lk import PAPER_METHODS, versus_lk_section
+
+
+#: The titles (a ``## `` heading up to any " (") of the sections the full run writes.
+WRITTEN_SECTIONS = ("Accuracy", "Covariance calibration", "Speed", "Profile", "Memory by clip length", "Many clips",
+                    "Against OpenCV LK")
+#: What bench/results.md holds, under its title.
+INTRO = [
+    "Today's results, one section per part of the benchmark, each naming the command that wrote its tables and the",
+    "commit they were measured at. `make bench` (`python -m condtrack_cli.evaluate.bench --out bench/results.md`) writes",
+    "the sections Accuracy, Covariance calibration, Speed, Profile, Memory by clip length, Many clips and Against",
+    "OpenCV LK at one commit, and keeps the other sections of this file (the narrower runs pasted in: Calibration,",
+    "Student-t; Hard cases; The paper preset). The sections below were measured at different commits, each given.",
+    "Earlier measurements and the ideas tried and not kept: `bench/history.md`, by the same section titles.",
+]
+
+
+def other_sections(text: str) -> list[str]:
+    """The lines of ``text``'s ``## `` sections that the full run does not write (WRITTEN_SECTIONS), in order."""
+    kept: list[str] = []
+    keeping = False
+    for line in text.splitlines():
+        if line.startswith("## "):
+            keeping = line[3:].split(" (")[0].strip() not in WRITTEN_SECTIONS
+        if keeping:
+            kept.append(line)
+    return kept
 
 
 def machine() -> str:
@@ -135,13 +164,15 @@ def main() -> None:
     header = [
         "# condtrack benchmark",
         "",
+        *INTRO,
+        "",
+        "## Accuracy (TAP-Vid 'first' query mode; shared sets: queries = first observation of tracks "
+        f"with >= 3 observations, at most {args.max_points} per sequence)",
+        "",
         f"- date: {datetime.date.today().isoformat()}",
         f"- machine: {machine()}",
         f"- commit: {commit()}",
         "- command: `make bench`",
-        "",
-        "## Accuracy (TAP-Vid 'first' query mode; shared sets: queries = first observation of tracks "
-        f"with >= 3 observations, at most {args.max_points} per sequence)",
         "",
         "OA and AJ are n/a where the ground truth has no occluded rows. cov95 is n/a for methods without covariance.",
         "Track files stay in bench/out/ (`<sequence>.<method>.h5`, queries beside them): "
@@ -153,7 +184,8 @@ def main() -> None:
         "covP: share of the ground truth inside the predicted ellipse of level P % (ideal P/100); NEES: mean "
         "d^T C^-1 d over the rows with a finite covariance (ideal 2); finite: share of those rows.", "",
     ] + calibration_table(args.max_points, args.work)
-    text = "\n".join(header + accuracy + calibration + ["", "## Speed (issue 13)", ""] + speed + ["## Profile", ""] + profile + ["", "## Memory by clip length", ""] + memory + ["", "## Many clips", ""] + batch + [""] + versus_lk) + "\n"
+    kept = other_sections(args.out.read_text(encoding="utf-8")) if args.out.is_file() else []
+    text = "\n".join(header + accuracy + calibration + ["", "## Speed (issue 13)", ""] + speed + ["## Profile", ""] + profile + ["", "## Memory by clip length", ""] + memory + ["", "## Many clips", ""] + batch + [""] + versus_lk + ([""] + kept if kept else [])).rstrip("\n") + "\n"
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(text)
     print(f"bench: wrote {args.out}", file=sys.stderr)
