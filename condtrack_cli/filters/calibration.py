@@ -140,6 +140,7 @@ CORE_MAX = 0.562
 RATIO_APERTURE = 1.0
 RATIO_DRIFT = 0.00166
 RATIO_COAST = 0.142
+RATIO_WALK = float(__import__("os").environ.get("RATIO_WALK", "1.0"))
 #: Least ratio of a row (nu >= 2 / (1 - RATIO_MIN)).
 RATIO_MIN = 0.0023
 
@@ -148,13 +149,13 @@ POINT_PRIOR = 1.0
 
 
 def scale_ratio(own: np.ndarray, aperture: np.ndarray, drift: np.ndarray, coast: np.ndarray,
-                consistency: np.ndarray) -> np.ndarray:
+                consistency: np.ndarray, walk: np.ndarray | float = 0.0) -> np.ndarray:
     """(n,) rho = tr(Student-t scale) / tr(covariance) of rows whose reported covariance is the sum of the traces
     ``own`` (the filter's, lambda-scaled), ``aperture`` (A), ``drift`` (D - A) and ``coast`` (C), all (n,) px^2,
     for points of innovation consistency ``consistency`` (n,) lambda_p; in (0, 1)."""
     core = np.minimum(CORE_GAIN * np.maximum(consistency, 0.0) ** CORE_POWER, CORE_MAX)
-    total = own + aperture + drift + coast
-    scale = core * own + RATIO_APERTURE * aperture + RATIO_DRIFT * drift + RATIO_COAST * coast
+    total = own + aperture + drift + coast + walk
+    scale = core * own + RATIO_APERTURE * aperture + RATIO_DRIFT * drift + RATIO_COAST * coast + RATIO_WALK * walk
     return np.clip(scale / np.where(total > 0, total, np.inf), RATIO_MIN, 0.999)
 
 
@@ -171,6 +172,7 @@ class ErrorModel:
         self.gamma = gamma  #: the gate's chi-square threshold
         self.aperture = aperture
         self.drift = np.zeros((n_points, 2, 2))  #: D, px^2
+        self.walk = np.zeros((n_points, 2, 2))  #: W, px^2
         self.coasted = np.zeros(n_points)  #: t, frames since the point was last found
         self.detour = np.zeros((n_points, 2))  #: sum over the frames coasted of the dynamics' disagreement, px
         self.reported = np.full((n_points, 2, 2), np.nan)  #: the covariance reported, px^2
@@ -203,6 +205,7 @@ class ErrorModel:
         not coasting, D their aperture offset (0 where they pass the trackability test, or without ``gray``)."""
         offset = self.aperture.offset(gray, xy, sigma) if self.aperture is not None and gray is not None else 0.0
         self.drift[index] = offset
+        self.walk[index] = 0.0
         self.aperture_offset[index] = offset
         self._point_nis[index] = 0.0
         self.coasted[index] = 0
@@ -212,11 +215,12 @@ class ErrorModel:
     def _report(self, index: np.ndarray, own: np.ndarray, drift: np.ndarray, coast: np.ndarray) -> None:
         """Reported covariance of points ``index``: the filter's (n, 2, 2) ``own`` plus the (n, 2, 2) ``drift`` D and
         ``coast`` C; and the Student-t's scale over it (``scale_ratio``), A taken as the part of D it still is."""
-        self.reported[index] = own + (drift + coast)
-        own, drift, coast, offset = (np.trace(m, axis1=1, axis2=2)
-                                     for m in (own, drift, coast, self.aperture_offset[index]))
+        walk = self.walk[index]
+        self.reported[index] = own + (drift + coast) + walk
+        own, drift, coast, offset, walk = (np.trace(m, axis1=1, axis2=2)
+                                     for m in (own, drift, coast, self.aperture_offset[index], walk))
         aperture = np.minimum(offset, drift)
-        self.ratio[index] = scale_ratio(own, aperture, drift - aperture, coast, self.consistency[index])
+        self.ratio[index] = scale_ratio(own, aperture, drift - aperture, coast, self.consistency[index], walk)
 
     @property
     def dof(self) -> np.ndarray:
@@ -238,7 +242,7 @@ class ErrorModel:
 
     def update(self, index: np.ndarray, predicted: np.ndarray, s_pred: np.ndarray, z: np.ndarray, R: np.ndarray,
                found: np.ndarray, xy: np.ndarray, sigma: np.ndarray, retaken: np.ndarray,
-               disagreement: np.ndarray) -> None:
+               disagreement: np.ndarray, offset_floor: np.ndarray | None = None) -> None:
         """The reported covariance of points ``index`` after a step, and the pooled statistics.
 
         predicted (n, 2), s_pred (n, 2, 2): the gate's prediction and its covariance;
@@ -277,4 +281,7 @@ class ErrorModel:
         self.detour[index] = np.where(found[:, None], 0.0, self.detour[index] + disagreement)
         coast = self._coasting(self.coasted[index], self.detour[index])
         self._report(index, scaled, self.drift[index], coast)
-        self.drift[index[retaken]] += lam * sigma[retaken]  # the new reference's offset, from the next frame on
+        self.walk[index[retaken]] += lam * sigma[retaken]  # the new reference's offset, from the next frame on
+        if offset_floor is not None:  # a re-take its first patch no longer confirms: W at least that floor per axis
+            diagonal = self.walk[index][:, [0, 1], [0, 1]]
+            self.walk[index, [[0], [1]], [[0], [1]]] += np.maximum(offset_floor[:, None] - diagonal, 0.0).T

@@ -210,7 +210,8 @@ class CLFTracker(MDRTracker):
         retaken = self.reference.refresh(index, prev, x_prev, frame, self.xy[index], found_before, measured)
         disagreement = x_local - x_global if self.needs_local_motion else np.zeros_like(x_global)
         self.errors.update(index, x_pred, sigma_pred, measured.z, measured.R_used, measured.valid, self.xy[index],
-                           self.cov[index], retaken, disagreement)
+                           self.cov[index], retaken, disagreement,
+                           self.reference.offset_floor[index])
         if self.transitions is not None:
             self.transitions.record(frame.index, index, excess=self.errors.reported[index] - self.cov[index])
 

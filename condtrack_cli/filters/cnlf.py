@@ -258,7 +258,8 @@ class CNLFTracker(Tracker):
         disagreement = field.displacement(x_prev) - displacement(motion.global_fit, x_prev)
         self._remember_layer(index, x_prev, found_before, measured.valid, motion.global_fit)
         self.errors.update(index, gate_mean, gate_cov, measured.z, measured.R_used, measured.valid, self.xy[index],
-                           self.cov[index], retaken, disagreement)
+                           self.cov[index], retaken, disagreement,
+                           self.reference.offset_floor[index])
         if self.transitions is not None:
             self.transitions.record(frame.index, index, excess=self.errors.reported[index] - self.cov[index])
 

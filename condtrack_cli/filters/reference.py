@@ -144,6 +144,11 @@ class ReferenceMatcher:
         self.measure, self.settings, self.gamma = measure, settings, gamma
         t = measure.template_side
         self.templates = np.zeros((n_points, t, t), np.float32)
+        #: (P, t, t) each point's first reference patch, taken at its query (the anchor of ``drift_check``)
+        self.anchors = np.zeros((n_points, t, t), np.float32)
+        #: (P,) least per-axis variance of the offset of each point's reference re-taken on the last step (px^2):
+        #: ``drift_check``^2 where the first patch was not found within ``drift_check`` px of the re-take, else 0
+        self.offset_floor = np.zeros(n_points)
         self.gate_r = np.repeat(settings.nominal_r * np.eye(2)[None], n_points, axis=0)
         self.noise_sigma: float | None = None
         #: (P,) each point's usual residual (grey levels^2): the mean of the residuals of its matches used, each
@@ -160,6 +165,7 @@ class ReferenceMatcher:
         if self.noise_sigma is None:
             self.noise_sigma = self.measure.noise_sigma(frame.gray)
         self._take(index, self.measure.templates(frame.gray, xy))
+        self.anchors[index] = self.templates[index]
         self.usual[index] = np.nan
         self.step[index] = np.nan
 
@@ -319,15 +325,34 @@ class ReferenceMatcher:
         s = self.settings
         self.step[index] = np.where((found_before & measured.valid)[:, None], x_post - x_prev, np.nan)
         retaken = np.zeros(len(index), bool)
+        self.offset_floor[index] = 0.0
         if not s.reference_update:
             return retaken
         candidates = np.flatnonzero(measured.valid & found_before
                                     & (measured.residual > s.update_residual * self._noise_ssd()))
         if not candidates.size:
             return retaken
-        patches = self.measure.templates(frame.gray, x_post[candidates])
+        at, anchored = self._anchored(index[candidates], frame, x_post[candidates])
+        patches = self.measure.templates(frame.gray, at)
         before = self.measure.templates(prev.gray, x_prev[candidates])
         steady = self.measure.cost(patches, before) <= s.update_abruptness * measured.residual[candidates]
         self._take(index[candidates[steady]], patches[steady])
         retaken[candidates[steady]] = True
+        if s.drift_check is not None:
+            self.offset_floor[index[candidates[steady & ~anchored]]] = s.drift_check**2
         return retaken
+
+    def _anchored(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 2) where points ``index`` re-take their reference, and (n,) bool whether that is their first patch's
+        match: the first reference patch's match in a square of half-size ``drift_check`` around (n, 2) estimates
+        ``xy`` where it is informative and lies within ``drift_check`` px of them, else ``xy`` (Matthews, Ishikawa
+        & Baker 2004, "The template update problem": each re-take at the estimate adds its error to every later
+        match; the first patch, where it still fits, holds the re-takes to the point)."""
+        reach = self.settings.drift_check
+        if reach is None or not len(index):
+            return xy, np.zeros(len(index), bool)
+        gate = np.repeat(np.eye(2)[None] * (reach**2 / self.gamma), len(index), axis=0)
+        m = self.measure.measure(frame.gray, self.anchors[index], xy, gate, self.noise_sigma)
+        with np.errstate(invalid="ignore"):
+            near = m.informative & (np.linalg.norm(m.z - xy, axis=1) <= reach)
+        return np.where(near[:, None], m.z, xy), near

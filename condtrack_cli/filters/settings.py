@@ -26,6 +26,11 @@ class MeasuredFilterSettings(InitialStateSettings):
     update_residual: float = Field(
         4.0, gt=1, description="refresh when the match residual exceeds this many times its noise-only expectation"
     )
+    drift_check: float | None = Field(
+        3.0, gt=0,
+        description="a refresh re-takes the patch where the point's first reference matches, when that match lies "
+                    "within this many px of the estimate (drift correction; null: at the estimate, the paper's)",
+    )
     update_abruptness: float = Field(
         0.8, gt=0, le=1, description="no refresh when more than this share of the residual appeared since the last frame"
     )

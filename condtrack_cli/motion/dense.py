@@ -150,7 +150,7 @@ class DisMotionSettings(StageSettings):
     global_samples: int = Field(
         4000, ge=100, description="most field vectors in the global fit (a regular sample of the frame)"
     )
-    q_floor: float = Field(0.25, gt=0, description="floor added to the state noise Q_k (px^2)")
+    q_floor: float = Field(0.05, gt=0, description="floor added to the state noise Q_k (px^2)")
     q_misfit: float = Field(
         100.0, ge=0, description="variance added to Q_k where the neighbourhood rejects the dominant motion (px^2)"
     )
