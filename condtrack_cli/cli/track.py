@@ -65,7 +65,8 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 @click.option("--format", "batch_format", type=click.Choice(["h5", "csv"]), default="h5", show_default=True, help="Batch: output format.")
 @click.option("-j", "--jobs", type=click.IntRange(min=1), help="Batch: inputs processed in parallel (default 1; not with --scheduler).")
 @batch_options
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar, summary or warnings on stderr.")
+@click.option("-q", "--quiet", is_flag=True,
+              help="No progress bar, summary or warnings on stderr (a batch still prints its failed inputs).")
 def track(inputs, config_path, queries_path, method, output_path, overlay_path, overlay_points, ellipses, ellipse_cap,
           seed, max_std, forward_only, smooth, untrackable, overrides, list_path, out_dir, batch_format, jobs, quiet, threads,
           **batch) -> None:
