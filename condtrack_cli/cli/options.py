@@ -40,7 +40,7 @@ def checked(check: Callable[[Path], None]):
 
 
 def track_file_suffix(path: Path) -> None:
-    """Refuse an output track file whose suffix is not one of ``io.formats.FORMATS``'."""
+    """Refuse an output track file whose suffix is not one of ``io.formats.FORMATS``."""
     from condtrack_cli.io.formats import track_format
 
     track_format(path, "output")

@@ -12,7 +12,8 @@ from condtrack_cli.cli.options import checked, overlay_options, overlay_style, p
 @click.command("render")
 @click.argument("tracks_path", metavar="TRACKS", type=click.Path(dir_okay=False))
 @click.argument("input_path", metavar="INPUT", type=click.Path(readable=False))  # a path, checked by the run
-@click.option("-o", "--output", "output_path", required=True, type=click.Path(dir_okay=False), callback=checked(video_suffix),
+@click.option("-o", "--output", "output_path", required=True, type=click.Path(dir_okay=False),
+              callback=checked(video_suffix),
               help="Overlay video: OUT.mp4, .avi, .mov or .mkv (MPEG-4; a folder OUT/ of PNGs when no codec opens).")
 @click.option("--contact-sheet", "sheet_path", type=click.Path(dir_okay=False), callback=checked(png_suffix),
               help="Also write a PNG tiling evenly spaced frames with the overlay.")
