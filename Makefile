@@ -34,7 +34,7 @@ paper: $(STAMP)
 	$(BIN)/python -m condtrack_cli.evaluate.paper_figures --out paper_figures
 
 samples: $(STAMP)
-	$(BIN)/condtrack synth sample_sequences --samples
+	$(BIN)/condtrack synth sample_sequences --samples --force
 
 clean:
 	rm -rf $(VENV) demo-out paper_figures .pytest_cache

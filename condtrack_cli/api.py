@@ -228,11 +228,12 @@ def track(
         raise InvalidArgument(f"untrackable: {plain(untrackable)} is not one of {', '.join(POLICIES)}")
     if not isinstance(forward_only, bool):
         raise InvalidArgumentType(f"forward_only: expected True or False, got {type(forward_only).__name__}")
-    overrides = ([f"detect.untrackable={untrackable}"] if untrackable is not None else []) + (
-        [f"output.max_std={plain(max_std)}"] if max_std is not None else []) + (
-        ["output.backward=false"] if forward_only else [])
+    options = {name: override for name, override, given in (
+        ("untrackable", f"detect.untrackable={untrackable}", untrackable is not None),
+        ("max_std", f"output.max_std={plain(max_std)}", max_std is not None),
+        ("forward_only", "output.backward=false", forward_only)) if given}
     with Progress() if progress is True else contextlib.nullcontext(progress or None) as callback:
-        tracks, _ = track_sequence(source, load_config(config, overrides, method), queries, seed, callback)
+        tracks, _ = track_sequence(source, load_config(config, (), method, options), queries, seed, callback)
     return tracks
 
 

@@ -15,6 +15,7 @@ two equal.
 from __future__ import annotations
 
 import copy
+import re
 from collections.abc import Hashable
 from dataclasses import dataclass
 from pathlib import Path
@@ -191,7 +192,8 @@ class DuplicateKey(yaml.constructor.ConstructorError):
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
-    """PyYAML's safe loader, refusing a key given twice in one mapping with :class:`DuplicateKey`."""
+    """PyYAML's safe loader, refusing a key given twice in one mapping with :class:`DuplicateKey`, and reading
+    every float with an exponent as a float (``_EXPONENT_FLOAT``)."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:
         seen = set()
@@ -204,6 +206,12 @@ class _UniqueKeyLoader(yaml.SafeLoader):
                     raise DuplicateKey(key, key_node.start_mark.line + 1)
                 seen.add(key)
         return super().construct_mapping(node, deep=deep)
+
+
+#: A float with an exponent that YAML 1.1 (PyYAML) reads as a string: ``1e-3``, ``1E16``, ``2.5e3`` (no dot, or an
+#: unsigned exponent). Python, C and YAML 1.2 read these as floats, and so does the config.
+_EXPONENT_FLOAT = re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9][0-9_]*)[eE][-+]?[0-9]+$")
+_UniqueKeyLoader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789."))
 
 
 def parse_yaml(text: str) -> Any:
@@ -268,34 +276,44 @@ def filters_used_by(method: str) -> tuple[str, ...]:
     return (method, *registry.get("filter", method).settings.filter_sections)
 
 
-def _warn_unused_override(config: Config, path: list[str], text: str) -> None:
-    """Warn (:class:`CondtrackWarning`) when ``--set`` ``text`` sets a ``filter.<name>`` section that the method does not read."""
-    if len(path) < 3 or path[0] != "filter" or path[1] not in valid_methods() or path[1] in filters_used_by(config.method):
-        return
+def _unused_because(config: Config, path: list[str]) -> str | None:
+    """Why setting the config key ``path`` changes nothing under ``config``'s method, or None when it may."""
+    method = config.method
+    if path == ["output", "max_std"] and not registry.get("filter", method).settings.covariance:
+        return f"method '{method}' writes no covariance"
+    if len(path) < 3 or path[0] != "filter" or path[1] not in valid_methods() or path[1] in filters_used_by(method):
+        return None
     users = [name for name in valid_methods() if path[1] in filters_used_by(name)]
-    warn(f"--set {text} has no effect: method '{config.method}' does not use filter.{path[1]} "
-         f"(-m {' or -m '.join(users)} would)")
+    return f"method '{method}' does not use filter.{path[1]} (-m {' or -m '.join(users)} would)"
 
 
 def load_config(
     path: str | Path | Mapping[str, Any] | None = None, overrides: list[str] = (), method: str | None = None,
+    options: Mapping[str, str] | None = None,
 ) -> Config:
-    """The validated config: defaults, then the file (or a nested mapping), then ``--set`` overrides, then ``-m``.
+    """The validated config: defaults, then the file (or a nested mapping), then ``--set`` overrides, then the
+    overrides of ``options``, then ``-m``.
 
-    An override of a filter section that the chosen method does not use gets a warning.
+    ``options``: overrides that options or arguments make, by the option's name
+    (``{"--max-std": "output.max_std=3.0"}``). An override that the chosen method
+    does not read (a filter section it does not use, ``output.max_std`` without
+    a covariance) gets a warning naming the ``--set`` or the option.
     """
     if path is not None and not isinstance(path, (str, Path, Mapping)):
         raise CondtrackError(f"config: expected a YAML path or a nested mapping, got {type(path).__name__}")
     raw = read_yaml(path) if isinstance(path, (str, Path)) else dict(path or {})
     raw = copy.deepcopy(raw)
-    parsed = [parse_override(text) for text in overrides]
-    for override in parsed:
+    given = [(f"--set {text}", text) for text in overrides] + list((options or {}).items())
+    parsed = [(name, parse_override(text)) for name, text in given]
+    for _, override in parsed:
         _apply_override(raw, *override)
     if method is not None:
         _apply_override(raw, ["filter", "method"], method)
     config = resolve(raw)
-    for text, (key_path, _) in zip(overrides, parsed):
-        _warn_unused_override(config, key_path, text)
+    for name, (key_path, _) in parsed:
+        reason = _unused_because(config, key_path)
+        if reason:
+            warn(f"{name} has no effect: {reason}")
     return config
 
 

@@ -15,16 +15,15 @@ import click
 from condtrack_cli.errors import CondtrackWarning
 
 _shown = True  #: the last ``show_warnings`` choice, handed to a batch's worker processes
-_showwarning = warnings.showwarning  #: what shows the warnings that are not condtrack's
 
 
 def show_warnings(shown: bool) -> None:
-    """Print every :class:`CondtrackWarning` on stderr as a ``warning: ...`` line (``shown``), or none (-q)."""
-    global _shown, _showwarning
+    """Print every :class:`CondtrackWarning` on stderr as a ``warning: ...`` line (``shown``), or none (-q); any
+    other warning shown is a ``warning: <category>: ...`` line too (no source line)."""
+    global _shown
     _shown = shown
     warnings.simplefilter("always" if shown else "ignore", CondtrackWarning)
-    if warnings.showwarning is not _print_warning:
-        _showwarning, warnings.showwarning = warnings.showwarning, _print_warning
+    warnings.showwarning = _print_warning
 
 
 def warnings_shown() -> bool:
@@ -33,10 +32,9 @@ def warnings_shown() -> bool:
 
 
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    if issubclass(category, CondtrackWarning):
-        click.echo(f"warning: {message}", err=True)
-    else:
-        _showwarning(message, category, filename, lineno, file, line)
+    """``warnings.showwarning`` as one line on stderr: a CondtrackWarning's message, or any other's category and message."""
+    named = "" if issubclass(category, CondtrackWarning) else f"{category.__name__}: "
+    click.echo(f"warning: {named}{message}", err=True)
 
 
 def _may_be_terminal() -> bool:

@@ -296,13 +296,18 @@ def _opencv_warnings_off() -> Iterator[None]:
         cv2.utils.logging.setLogLevel(level)
 
 
-def check_video_path(path: Path) -> None:
-    """Refuse, before any work, a video name whose extension is not a video container, or an unwritable folder."""
+def check_video_suffix(path: Path) -> None:
+    """Refuse a video name whose extension is not a video container (``VIDEO_SUFFIXES``)."""
     if path.suffix.lower() not in VIDEO_SUFFIXES:
         raise CondtrackError(
             f"{path}: the overlay is an MPEG-4 video; name it {' or '.join(VIDEO_SUFFIXES)}"
             + (" (a PNG picture is --contact-sheet)" if path.suffix.lower() == ".png" else "")
         )
+
+
+def check_video_path(path: Path) -> None:
+    """Refuse, before any work, a video name whose extension is not a video container, or an unwritable folder."""
+    check_video_suffix(path)
     check_writable(path)
 
 

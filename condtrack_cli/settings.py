@@ -18,9 +18,12 @@ class StageSettings(BaseModel):
     fit in the frame; :meth:`condtrack_cli.config.Config.check_fits_frame` checks
     them once the frame size is known. ``filter_sections`` (a filter's settings
     only) names the other filters whose ``filter.<name>`` settings it reads, as
-    the router ``auto`` reads ``clf`` and ``cnlf``.
+    the router ``auto`` reads ``clf`` and ``cnlf``; ``covariance`` (a filter's
+    settings only) is False for a filter that writes no covariance (NaN), as
+    STK: ``output.max_std`` then changes nothing.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
     frame_windows: ClassVar[tuple[str, ...]] = ()
     filter_sections: ClassVar[tuple[str, ...]] = ()
+    covariance: ClassVar[bool] = True

@@ -7,6 +7,7 @@ A command's module is imported only when that command runs or shows its help:
 
 from __future__ import annotations
 
+import os
 import sys
 from importlib import import_module
 
@@ -34,6 +35,11 @@ COMMANDS = {
 }
 
 
+class _Interrupted(Exception):
+    """Ctrl-C or SIGTERM (its ``__cause__``) during a command, carried past Click, which would print a blank line first
+    (it closes a terminal's ``^C`` echo; ``main`` prints it on a terminal only)."""
+
+
 class LazyGroup(click.Group):
     """A group whose commands (``COMMANDS``) are imported on first use; its help lists them without importing any."""
 
@@ -45,6 +51,12 @@ class LazyGroup(click.Group):
             return None
         module, _, attribute = COMMANDS[name][0].partition(":")
         return getattr(import_module(f"condtrack_cli.cli.{module}"), attribute)
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt as interrupt:
+            raise _Interrupted() from interrupt
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:
         """The Commands section, shortened as Click shortens a command's help, from ``COMMANDS``."""
@@ -65,13 +77,18 @@ def cli() -> None:
 def main() -> None:
     """Console entry point: one-line ``Error: ...`` and a non-zero exit on bad input."""
     raise_on_sigterm()
+    # FFmpeg's own log lines ("moov atom not found") off, as OpenCV reads it on its first video open in the process
+    # (batch workers inherit it); condtrack's error names the file. A level the user set is kept.
+    os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
     try:
         code = cli.main(prog_name="condtrack", standalone_mode=False)
     except CondtrackError as error:
         click.echo(f"Error: {error}", err=True)
         sys.exit(error.exit_code)
-    except (click.exceptions.Abort, KeyboardInterrupt) as stop:  # Ctrl-C or SIGTERM; Click turns them into Abort
-        interrupt = stop if isinstance(stop, KeyboardInterrupt) else stop.__context__
+    except (_Interrupted, click.exceptions.Abort, KeyboardInterrupt) as stop:  # Ctrl-C or SIGTERM (Abort: while parsing)
+        interrupt = stop if isinstance(stop, KeyboardInterrupt) else stop.__cause__ or stop.__context__
+        if isinstance(stop, _Interrupted) and _on_terminal():
+            click.echo(err=True)  # past the terminal's ^C
         click.echo("Error: interrupted", err=True)
         sys.exit(exit_code(interrupt) if isinstance(interrupt, KeyboardInterrupt) else 130)
     except click.ClickException as error:  # a usage error (exit 2) shows the command's usage line first, as Click does
@@ -80,3 +97,11 @@ def main() -> None:
         click.echo(f"Error: {error.format_message()}", err=True)
         sys.exit(error.exit_code)
     sys.exit(code if isinstance(code, int) else 0)
+
+
+def _on_terminal() -> bool:
+    """Whether stderr is a terminal (False without a stream or on a closed one)."""
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):
+        return False

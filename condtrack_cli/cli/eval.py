@@ -6,6 +6,7 @@ import json
 
 import click
 
+from condtrack_cli.cli.options import checked, png_suffix
 from condtrack_cli.evaluate.groundtruth import load_gt_csv, load_gt_tapvid
 from condtrack_cli.evaluate.metrics import METRIC_KEYS, QUERY_MODES
 from condtrack_cli.evaluate.score import score_tracks
@@ -53,6 +54,7 @@ def _print_table(result: dict, notes: list[str], title: str) -> None:
               help="csv: point_id,frame,x,y,visible; tapvid: a TAP-Vid pickle holding one video (arrays, dicts, "
                    "lists and numbers only: a pickle naming other code is refused).")
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, metavar="FILE.png",
+              callback=checked(png_suffix),
               help="Also draw the reliability diagram and the normalised-error histogram (needs condtrack[plot]).")
 def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: str, plot_path: str | None) -> None:
     """Score PRED (a condtrack .csv or .h5) against the ground truth GT with the TAP-Vid metrics.

@@ -20,6 +20,7 @@ def info_command(tracks_path: str) -> None:
 
     A CSV holds tracks only; what it does not say is printed as n/a.
     """
+    from condtrack_cli.io.formats import is_hdf5
     from condtrack_cli.io.read import read_tracks, stored_datasets
 
     path = Path(tracks_path)
@@ -33,7 +34,8 @@ def info_command(tracks_path: str) -> None:
     started = tracks.has_state
     visible = (f"{tracks.visible[started].mean():.1%} of {int(started.sum())} rows with a state"
                if started.any() else "no row has a state")
-    queries = f"{tracks.queries.frame.min()} .. {tracks.queries.frame.max()}" if n_points else "n/a"
+    queries = (f"{tracks.queries.frame.min()} .. {tracks.queries.frame.max()}"
+               if n_points and is_hdf5(path) else "n/a")  # a CSV holds no queries: its first rows are not them
     size = f"{meta['width']} x {meta['height']} px" if "width" in meta else "n/a"
     fps = meta.get("fps")
     fps_text = "n/a" if fps is None else f"{fps:g}" + (" (none: a folder of frames)" if fps == 0 else "")

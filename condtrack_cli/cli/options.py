@@ -1,10 +1,62 @@
-"""Options that several commands share: the overlay's (``track --overlay`` and ``render``). Imports click only."""
+"""Option types, checks and options that several commands share: the overlay's (``track --overlay`` and ``render``).
+
+Imports click only; a check imports what it needs when it runs.
+"""
 
 from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Callable
 
 import click
 
 from condtrack_cli.errors import CondtrackError
+
+
+class FiniteFloatRange(click.FloatRange):
+    """A ``click.FloatRange`` that also refuses ``nan``, ``inf`` and what overflows to it (``1e999``): a bad option value."""
+
+    def convert(self, value, param, ctx) -> float:
+        number = super().convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number", param, ctx)
+        return number
+
+
+def checked(check: Callable[[Path], None]):
+    """A click callback running ``check(path)`` on the option's value when given: a CondtrackError it raises is a bad
+    value of that option (a usage error, exit 2, naming the option)."""
+
+    def callback(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
+        if value is not None:
+            try:
+                check(Path(value))
+            except CondtrackError as error:
+                raise click.BadParameter(str(error), ctx, param) from None
+        return value
+
+    return callback
+
+
+def track_file_suffix(path: Path) -> None:
+    """Refuse an output track file whose suffix is not one of ``io.formats.FORMATS``."""
+    from condtrack_cli.io.formats import track_format
+
+    track_format(path, "output")
+
+
+def video_suffix(path: Path) -> None:
+    """Refuse an overlay video whose suffix is not one of ``render.VIDEO_SUFFIXES``."""
+    from condtrack_cli.render import check_video_suffix
+
+    check_video_suffix(path)
+
+
+def png_suffix(path: Path) -> None:
+    """Refuse a picture (``render --contact-sheet``, ``eval --plot``) not named .png: PNG is what they write."""
+    if path.suffix.lower() != ".png":
+        raise CondtrackError(f"{path}: the picture is a PNG (use a .png name)")
 
 
 def overlay_options(command):
@@ -14,7 +66,7 @@ def overlay_options(command):
                      help="Overlay: draw only the N points that move most (longest path over the clip)."),
         click.option("--ellipses", type=click.Choice(["all", "visible", "none"]),
                      help="Overlay: covariance ellipses on every point (all, the default), on visible points, or none."),
-        click.option("--ellipse-cap", type=click.FloatRange(min=0, min_open=True), metavar="PX",
+        click.option("--ellipse-cap", type=FiniteFloatRange(min=0, min_open=True), metavar="PX",
                      help="Overlay: largest semi-major axis drawn (px); a larger ellipse is a diamond mark "
                           "(default: half the frame's diagonal)."),
     ]
@@ -24,12 +76,12 @@ def overlay_options(command):
 
 
 def overlay_style(overlay_points: int | None, ellipses: str | None, ellipse_cap: float | None, overlay: object = True):
-    """The ``render.OverlayStyle`` of the options; None without ``overlay`` (the video), CondtrackError when one is given then."""
+    """The ``render.OverlayStyle`` of the options; None without ``overlay`` (the video), a usage error when one is given then."""
     if not overlay:
         given = [f"--{name}" for name, value in (("overlay-points", overlay_points), ("ellipses", ellipses),
                                                  ("ellipse-cap", ellipse_cap)) if value is not None]
         if given:
-            raise CondtrackError(f"{', '.join(given)}: an overlay option (give --overlay OUT.mp4)")
+            click.get_current_context().fail(f"{', '.join(given)}: an overlay option (give --overlay OUT.mp4)")
         return None
     from condtrack_cli.render import OverlayStyle
 

@@ -6,16 +6,16 @@ from pathlib import Path
 
 import click
 
-from condtrack_cli.cli.options import overlay_options, overlay_style
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.cli.options import checked, overlay_options, overlay_style, png_suffix, video_suffix
 
 
 @click.command("render")
 @click.argument("tracks_path", metavar="TRACKS", type=click.Path(dir_okay=False))
 @click.argument("input_path", metavar="INPUT", type=click.Path(readable=False))  # a path, checked by the run
 @click.option("-o", "--output", "output_path", required=True, type=click.Path(dir_okay=False),
+              callback=checked(video_suffix),
               help="Overlay video: OUT.mp4, .avi, .mov or .mkv (MPEG-4; a folder OUT/ of PNGs when no codec opens).")
-@click.option("--contact-sheet", "sheet_path", type=click.Path(dir_okay=False),
+@click.option("--contact-sheet", "sheet_path", type=click.Path(dir_okay=False), callback=checked(png_suffix),
               help="Also write a PNG tiling evenly spaced frames with the overlay.")
 @click.option("--trail", type=click.IntRange(min=1), default=10, show_default=True,
               help="Positions joined by each point's trail (1: no trail).")
@@ -48,8 +48,6 @@ def render_command(tracks_path: str, input_path: str, output_path: str, sheet_pa
     tracks_file, output = Path(tracks_path), Path(output_path)
     sheet = Path(sheet_path) if sheet_path else None
     check_video_path(output)
-    if sheet is not None and sheet.suffix.lower() != ".png":
-        raise CondtrackError(f"{sheet}: the contact sheet is a PNG (use a .png name)")
     if sheet is not None:  # checked now: the sheet is written after the video
         check_writable(sheet)
     refuse_overwriting_inputs({"-o": output, "--contact-sheet": sheet}, {"INPUT": input_path, "TRACKS": tracks_file})

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import click
 
+from condtrack_cli.cli.options import FiniteFloatRange
 from condtrack_cli.errors import CondtrackError
 
 
@@ -26,13 +29,20 @@ class _Size(click.ParamType):
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--size", type=_Size(), default="320x240", show_default=True, help="WIDTHxHEIGHT in pixels.")
 @click.option("--frames", "n_frames", type=click.IntRange(min=2), help="Number of frames (the scene's default otherwise).")
-@click.option("--noise", type=click.FloatRange(min=0), help="Noise standard deviation (grey levels).")
-def synth(out, scene, samples, seed, size, n_frames, noise) -> None:
-    """Write a synthetic scene with exact ground truth: frames, queries.csv, tracks.csv, labels.csv."""
-    from condtrack_cli.frames.synthetic import SCENES, make_scene, write_samples, write_scene
+@click.option("--noise", type=FiniteFloatRange(min=0), help="Noise standard deviation (grey levels).")
+@click.option("--force", is_flag=True,
+              help="Replace OUT (with --samples: its sample folders) when it exists; a folder holding other files than "
+                   "a scene's is never replaced.")
+def synth(out, scene, samples, seed, size, n_frames, noise, force) -> None:
+    """Write a synthetic scene with exact ground truth: frames, queries.csv, tracks.csv, labels.csv.
+
+    An existing, non-empty OUT is refused unless --force is given.
+    """
+    from condtrack_cli.frames.synthetic import SAMPLE_SEEDS, SCENES, make_scene, write_samples, write_scene
 
     usage = click.get_current_context()
     if samples:
+        _refuse_replacing([Path(out) / name for name in SAMPLE_SEEDS], force)
         try:
             written = write_samples(out)
         except OSError as error:
@@ -44,6 +54,7 @@ def synth(out, scene, samples, seed, size, n_frames, noise) -> None:
         usage.fail("synth needs --scene NAME or --samples")
     if scene not in SCENES:
         raise click.BadParameter(f"unknown scene {scene!r}; valid: {', '.join(SCENES)}", usage, param_hint="'--scene'")
+    _refuse_replacing([Path(out)], force)
     try:
         made = make_scene(scene, seed, size, n_frames, noise)
     except ValueError as error:  # --size, --frames or --noise out of the scene's range, checked before allocating
@@ -55,3 +66,15 @@ def synth(out, scene, samples, seed, size, n_frames, noise) -> None:
     except OSError as error:
         raise CondtrackError(f"{out}: cannot write the scene ({error.strerror}: {error.filename})") from None
     click.echo(f"{scene}: {written}")
+
+
+def _refuse_replacing(folders: list[Path], force: bool) -> None:
+    """Without ``force``, a usage error naming the first of ``folders`` that exists and holds anything (one that
+    cannot be listed is left to the writer, whose error names it)."""
+    for folder in folders:
+        try:
+            replaced = folder.is_dir() and any(folder.iterdir())
+        except OSError:
+            replaced = False
+        if replaced and not force:
+            click.get_current_context().fail(f"{folder}: the folder exists (--force replaces a scene folder)")

@@ -10,7 +10,8 @@ import click
 
 from condtrack_cli import MAX_SEED, registry
 from condtrack_cli.cli.batch_options import batch_options, refuse_batch_options
-from condtrack_cli.cli.options import overlay_options, overlay_style
+from condtrack_cli.cli.options import (FiniteFloatRange, checked, overlay_options, overlay_style, track_file_suffix,
+                                       video_suffix)
 from condtrack_cli.config import Config, config_keys, load_config
 from condtrack_cli.errors import read_error, warn
 from condtrack_cli.io.atomic import refuse_overwriting_inputs
@@ -43,12 +44,14 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), help="YAML config (default: configs/default.yaml's values).")
 @click.option("-p", "--queries", "queries_path", type=click.Path(dir_okay=False), help="CSV of query points: frame,x,y[,point_id].")
 @click.option("-m", "--method", type=_MethodChoice(), help="Tracking method (overrides filter.method); see `condtrack stages`.")
-@click.option("-o", "--output", "output_path", type=click.Path(dir_okay=False), help="Output .h5/.hdf5 or .csv (default: CSV on stdout).")
-@click.option("--overlay", "overlay_path", type=click.Path(dir_okay=False), help="Also render an overlay video (.mp4) of the tracks.")
+@click.option("-o", "--output", "output_path", type=click.Path(dir_okay=False), callback=checked(track_file_suffix),
+              help="Output .h5/.hdf5 or .csv (default: CSV on stdout).")
+@click.option("--overlay", "overlay_path", type=click.Path(dir_okay=False), callback=checked(video_suffix),
+              help="Also render an overlay video (.mp4) of the tracks.")
 @overlay_options
 @click.option("--seed", type=click.IntRange(min=0, max=MAX_SEED), default=0, show_default=True,
               help="Seed of every random draw.")
-@click.option("--max-std", type=click.FloatRange(min=0, min_open=True), metavar="PIXELS",
+@click.option("--max-std", type=FiniteFloatRange(min=0, min_open=True), metavar="PIXELS",
               help="Write a row as not visible when the std along its covariance's major axis exceeds PIXELS (output.max_std).")
 @click.option("--forward-only", is_flag=True,
               help="Track each point from its query frame on only: no rows before it, no backward pass (output.backward=false).")
@@ -62,7 +65,8 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 @click.option("--format", "batch_format", type=click.Choice(["h5", "csv"]), default="h5", show_default=True, help="Batch: output format.")
 @click.option("-j", "--jobs", type=click.IntRange(min=1), help="Batch: inputs processed in parallel (default 1; not with --scheduler).")
 @batch_options
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar, summary or warnings on stderr.")
+@click.option("-q", "--quiet", is_flag=True,
+              help="No progress bar, summary or warnings on stderr (a batch still prints its failed inputs).")
 def track(inputs, config_path, queries_path, method, output_path, overlay_path, overlay_points, ellipses, ellipse_cap,
           seed, max_std, forward_only, smooth, untrackable, overrides, list_path, out_dir, batch_format, jobs, quiet, threads,
           **batch) -> None:
@@ -88,10 +92,11 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         usage.fail("several inputs need --out-dir")
     if not in_batch:
         refuse_batch_options({**batch, "jobs": jobs})
-    flags = ((["filter.smooth=true"] if smooth else []) + ([f"detect.untrackable={untrackable}"] if untrackable else [])
-             + ([f"output.max_std={max_std!r}"] if max_std is not None else [])
-             + (["output.backward=false"] if forward_only else []))
-    config: Config = load_config(config_path, list(overrides) + flags, method)
+    options = {name: override for name, override, given in (
+        ("--smooth", "filter.smooth=true", smooth), ("--untrackable", f"detect.untrackable={untrackable}", untrackable),
+        ("--max-std", f"output.max_std={max_std!r}", max_std is not None),
+        ("--forward-only", "output.backward=false", forward_only)) if given}
+    config: Config = load_config(config_path, list(overrides), method, options)
     if not in_batch:
         threads, warning = threads_per_job(requested_threads(threads), 1)
         if warning:

@@ -35,6 +35,7 @@ import numpy as np
 import condtrack_cli as ct
 from condtrack_cli.detect.shi_tomasi import ShiTomasiSettings, detect_points
 from condtrack_cli.frames.readers import FrameSettings, open_frames
+from condtrack_cli.progress import show_warnings
 from condtrack_cli.render import OverlayStyle, render_contact_sheet, render_overlay
 
 REPO = Path(__file__).resolve().parents[2]
@@ -209,6 +210,7 @@ def summary(rows: list[dict], seconds: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    show_warnings(True)  # library warnings as the command line's ``warning: ...`` lines
     parser = argparse.ArgumentParser(prog="python -m condtrack_cli.evaluate.paper_figures", description=__doc__.split("\n")[0])
     parser.add_argument("--out", type=Path, default=REPO / "paper_figures", help="folder written (created)")
     parser.add_argument("--shared-data", type=Path, default=SHARED_DATA, help="folder holding the shared sequences")

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, warn
 from condtrack_cli.evaluate.groundtruth import Aligned
 from condtrack_cli.evaluate.metrics import COVERAGE_LEVELS, normalised_error, scored_frames
 from condtrack_cli.predictive import ellipse_level
@@ -45,8 +45,17 @@ def reliability_curve(data: Aligned, mode: str, gaussian: bool = False) -> tuple
 def write_plot(data: Aligned, mode: str, path: str, title: str) -> None:
     """Write the reliability diagram and the histogram side by side to the PNG ``path``.
 
-    Raises CondtrackError when matplotlib is missing, the file has no covariance, or no row has an ellipse.
+    Nothing to plot (the predictions hold no covariance, as STK's, or no scored row has an ellipse): a
+    CondtrackWarning saying so and no file. CondtrackError when matplotlib is missing.
     """
+    if np.isnan(data.pred_cov).all():
+        warn("--plot: the predictions hold no covariance: nothing to plot")
+        return
+    levels, observed, counted = reliability_curve(data, mode)
+    if counted == 0:
+        warn("--plot: no GT-visible scored row has a predicted ellipse: nothing to plot")
+        return
+    _, observed_gauss, _ = reliability_curve(data, mode, gaussian=True)
     try:
         import matplotlib
 
@@ -54,12 +63,6 @@ def write_plot(data: Aligned, mode: str, path: str, title: str) -> None:
         import matplotlib.pyplot as plt
     except ImportError:
         raise CondtrackError("--plot needs matplotlib: pip install 'condtrack[plot]'") from None
-    if data.pred_cov is None:
-        raise CondtrackError("--plot: the predictions hold no covariance (nothing to calibrate)")
-    levels, observed, counted = reliability_curve(data, mode)
-    _, observed_gauss, _ = reliability_curve(data, mode, gaussian=True)
-    if counted == 0:
-        raise CondtrackError("--plot: no GT-visible scored row has a predicted ellipse")
     rows = scored_frames(data.query_frame, data.gt_visible.shape[1], mode) & data.gt_known & data.gt_visible
     _, bounded, m2 = normalised_error(data.pred_xy - data.gt_xy, data.pred_cov)
     distance = np.minimum(np.sqrt(m2[bounded & rows]), HISTOGRAM_MAX)

@@ -91,15 +91,16 @@ def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
         for i, name in enumerate(header[:-1])
     }
     ids, frames, visible = column["point_id"], column["frame"], column["visible"]
-    row_dof = column.get("dof", np.full(len(ids), np.inf))
-    bad_dof = ~((row_dof > 2) | np.isnan(row_dof))
+    row_dof = column.get("dof", np.full(len(ids), np.inf))  # schema 1.0: Gaussian
     values = np.column_stack([column[name] for name in ("x", "y", "cov_xx", "cov_xy", "cov_yy")])
     for bad, what in ((frames < 0, "frame is negative"), ((visible != 0) & (visible != 1), "visible is not 0 or 1"),
-                      (bad_dof, "dof is not above 2 (nan, a number above 2 or inf)"),
+                      (~(row_dof > 2), "dof is {dof}, expected a number above 2 or inf (Gaussian)"),
                       (repeated_rows(ids, frames), "a second row for the same point_id and frame")):
         if bad.any():
             row = int(np.argmax(bad))
-            raise CondtrackError(f"{path}: line {line_of[row]} (point_id {ids[row]}, frame {frames[row]}): {what}")
+            cells = dict(zip(header, table[row]))  # the row's text, for a message showing the value read
+            raise CondtrackError(f"{path}: line {line_of[row]} (point_id {ids[row]}, frame {frames[row]}): "
+                                 + what.format_map(cells))
     visible = visible.astype(bool)
     method = _codes_of(path, table[:, -1])
     point_ids, first_row, point_index = np.unique(ids, return_index=True, return_inverse=True)

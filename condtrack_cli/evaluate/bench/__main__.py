@@ -46,6 +46,7 @@ from condtrack_cli.evaluate.bench.common import REPO
 from condtrack_cli.evaluate.bench.hard import REPORT_SEEDS, TUNE_SEEDS, hard_cases_table
 from condtrack_cli.evaluate.bench.speed import batch_table, memory_table, profile_table, speed_table
 from condtrack_cli.evaluate.bench.versus_lk import PAPER_METHODS, versus_lk_section
+from condtrack_cli.progress import show_warnings
 
 
 #: The titles (a ``## `` heading up to any " (") of the sections the full run writes.
@@ -94,6 +95,7 @@ def commit() -> str:
 
 
 def main() -> None:
+    show_warnings(True)  # library warnings as the command line's ``warning: ...`` lines
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=REPO / "bench" / "results.md")
     parser.add_argument("--max-points", type=int, default=1000, help="most query points per shared sequence")
