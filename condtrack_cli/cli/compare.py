@@ -65,8 +65,8 @@ def report_lines(result: Comparison, path_a: str, path_b: str) -> list[str]:
     share = result.differing_cells / result.cells * 100 if result.cells else 0.0
     lines.append(f"differing cells: {result.differing_cells} of {result.cells} ({share:.2f}%); "
                  f"largest position difference {result.max_px:.3g} px")
-    counted = [f"{name} {count}" + (f" ({result.ties} near-tie{'s' if result.ties > 1 else ''})" if name == "visible" and result.ties else "")
-               for name, count in result.counts.items() if count]
+    ties = f" ({result.ties} near-tie{'s' if result.ties > 1 else ''})" if result.ties else ""
+    counted = [f"{name} {count}" + (ties if name == "visible" else "") for name, count in result.counts.items() if count]
     if counted:
         lines.append("differing values: " + ", ".join(counted))
     if result.top:

@@ -244,6 +244,7 @@ def compare_tracks(
     state_a = _padded(a.has_state, ia, n_frames, False)  # (P, F)
     state_b = _padded(b.has_state, ib, n_frames, False)
     both = state_a & state_b
+    differing = np.zeros(both.shape, bool)  # cells over a tolerance: a method, a near-tie flip or a measure
     if "state" in fields:
         differs = state_a != state_b
         present = np.array(["absent", "present"], dtype=object)
@@ -251,9 +252,10 @@ def compare_tracks(
             present[state_b.astype(int)])
     if "method" in fields:
         va, vb = _padded(a.method, ia, n_frames, -1), _padded(b.method, ib, n_frames, -1)
-        differs = both & (va != vb)
+        other_method = both & (va != vb)
         names = np.array(method_codes() + ("none",), dtype=object)  # code -1 -> "none"
-        add("method", differs, differs.astype(float), names[va], names[vb])
+        add("method", other_method, other_method.astype(float), names[va], names[vb])
+        differing |= other_method
 
     xy_a, xy_b = _padded(a.xy, ia, n_frames, np.nan), _padded(b.xy, ib, n_frames, np.nan)
     distance = np.where(both, _distance(xy_a, xy_b), 0.0)  # (P, F) px
@@ -263,7 +265,6 @@ def compare_tracks(
         rows = np.arange(len(ids))
         add("moved", moved, np.where(moved, np.inf, 0.0), xy_a[rows, nearest], xy_b[rows, nearest],
             distance[rows, nearest])
-    differing = differs if "method" in fields else np.zeros(both.shape, bool)  # cells over a tolerance
     ties = 0
     if "visible" in fields:
         va, vb = _padded(a.visible, ia, n_frames, False), _padded(b.visible, ib, n_frames, False)
@@ -289,8 +290,9 @@ def compare_tracks(
         score = np.full(diff.shape, np.inf)
         np.divide(diff, tolerance, out=score, where=finite & (tolerance > 0))
         differing |= mismatch
-        shown_a, shown_b = (pa, pb) if pa.ndim == 2 else (pa.reshape(pa.shape[:2] + (-1,)), pb.reshape(pb.shape[:2] + (-1,)))
-        add(field, mismatch, score, shown_a, shown_b, diff)
+        if pa.ndim == 4:  # a matrix shown as its 4 entries
+            pa, pb = pa.reshape(pa.shape[:2] + (4,)), pb.reshape(pb.shape[:2] + (4,))
+        add(field, mismatch, score, pa, pb, diff)
 
     counts = {name: 0 for name in fields}
     for item in found:
