@@ -140,7 +140,7 @@ CORE_MAX = 0.562
 RATIO_APERTURE = 1.0
 RATIO_DRIFT = 0.00166
 RATIO_COAST = 0.142
-RATIO_WALK = float(__import__("os").environ.get("RATIO_WALK", "1.0"))
+RATIO_WALK = 0.3
 #: Least ratio of a row (nu >= 2 / (1 - RATIO_MIN)).
 RATIO_MIN = 0.0023
 
