@@ -15,7 +15,7 @@ dynamics that misses it by a similar amount every frame (parallax), so its error
 grows linearly with the frames coasted (median 1.7 px after one frame, 10 px
 after 8), not as the square root the filter's Q_k gives.
 
-The model, per point, reported covariance = max(lambda, 1) Sigma + D + C:
+The model, per point, reported covariance = max(lambda, 1) Sigma + D + W + C:
 
 - lambda: innovation-based consistency of the filter's covariance (covariance
   matching): the mean NIS nu^T S^-1 nu of the found points over recent frames,
@@ -32,8 +32,7 @@ The model, per point, reported covariance = max(lambda, 1) Sigma + D + C:
   query of a trackable point; a query that fails the trackability test (issue
   29: a flat region, an edge) starts with its aperture offset
   (``detect.trackability.Aperture``): its patch matches as well anywhere along
-  the aperture, so it may lock on a spot that is not the point. Each re-take of
-  the reference at the posterior adds lambda Sigma_post.
+  the aperture, so it may lock on a spot that is not the point.
   Each match adds the spread of a wrong match with its probability (PDA, one
   candidate): with B = lambda Sigma_{k|k-1} + C' the covariance of where the
   patch may be, the patch lies in the gate {nu^T S^-1 nu <= gamma} with prior
@@ -56,6 +55,16 @@ The model, per point, reported covariance = max(lambda, 1) Sigma + D + C:
   the time, NIS > 5 12-36 % (seq005, seq059, dinosaur, merton1). With the
   innovation term, found rows of P(wrong | nu) < 0.01 jumped 0-1.7 %, those
   of P >= 0.5 12-29 %.
+- W: the walk of the reference's offset (issue 45). Each re-take of the reference
+  (``reference.py``, ``refresh``) adds lambda Sigma_post, the error of the position
+  it was taken at, which every later match of the new patch repeats. A re-take that
+  the point's first patch does not confirm within ``drift_check`` px (``_anchored``:
+  the first patch no longer matches there, its appearance has changed or the chain
+  of re-takes has left it) lifts W to at least ``drift_check``^2 on each axis
+  (``offset_floor``): the point is then at least that far from where its first
+  patch would put it, as far as the images can tell. On the face clips the re-takes
+  are made on 70-90 % of the frames (the match's residual is 50-80 times the
+  noise's), so W, not D, is most of their error: a steady offset of a few pixels.
 - C: the coasting excess, 0 on a found frame. While a point is not found for t
   frames its error grows by the dynamics' one-step miss every frame, in the same
   direction (a constant velocity error): t^2 q I, q the per-axis mean squared
@@ -96,7 +105,10 @@ by term and weighted by each term's trace (``scale_ratio``):
   (tried for issue 12 and dropped; docs/departures.md);
 - the aperture offset A (a query that failed the trackability test):
   ``RATIO_APERTURE`` 1, a bounded slide along an edge, not a tail;
-- the rest of D (wrong matches, re-takes): ``RATIO_DRIFT``, and the coasting C:
+- the walk W: ``RATIO_WALK``, a sum of many re-takes' offsets, whose core is a
+  good part of its second moment (a Gaussian's would be all of it: 1; 0.3 keeps the
+  KITTI clips' 50 % ellipses in their band while the face clips' widen, bench/results.md);
+- the rest of D (wrong matches): ``RATIO_DRIFT``, and the coasting C:
   ``RATIO_COAST``: both are mixtures of rare large errors and many small ones
   summarised by their second moment, so their core is a small part of it.
 
@@ -140,6 +152,7 @@ CORE_MAX = 0.562
 RATIO_APERTURE = 1.0
 RATIO_DRIFT = 0.00166
 RATIO_COAST = 0.142
+#: The re-take walk W's ratio (issue 45; chosen, not fitted: bench/results.md, "Calibration").
 RATIO_WALK = 0.3
 #: Least ratio of a row (nu >= 2 / (1 - RATIO_MIN)).
 RATIO_MIN = 0.0023
@@ -151,8 +164,8 @@ POINT_PRIOR = 1.0
 def scale_ratio(own: np.ndarray, aperture: np.ndarray, drift: np.ndarray, coast: np.ndarray,
                 consistency: np.ndarray, walk: np.ndarray | float = 0.0) -> np.ndarray:
     """(n,) rho = tr(Student-t scale) / tr(covariance) of rows whose reported covariance is the sum of the traces
-    ``own`` (the filter's, lambda-scaled), ``aperture`` (A), ``drift`` (D - A) and ``coast`` (C), all (n,) px^2,
-    for points of innovation consistency ``consistency`` (n,) lambda_p; in (0, 1)."""
+    ``own`` (the filter's, lambda-scaled), ``aperture`` (A), ``drift`` (D - A), ``coast`` (C) and ``walk`` (W), all
+    (n,) px^2 (``walk`` 0: none), for points of innovation consistency ``consistency`` (n,) lambda_p; in (0, 1)."""
     core = np.minimum(CORE_GAIN * np.maximum(consistency, 0.0) ** CORE_POWER, CORE_MAX)
     total = own + aperture + drift + coast + walk
     scale = core * own + RATIO_APERTURE * aperture + RATIO_DRIFT * drift + RATIO_COAST * coast + RATIO_WALK * walk
