@@ -91,12 +91,13 @@ def score_versus_lk(folder: Path, queries: Path, truth: GroundTruth, work: Path,
             started = time.perf_counter()
             tracks = baseline(folder, read_queries(queries, open_frames(FrameSettings(), folder).info))
             results[column] = (score_tracks(tracks, truth, "first")[0], time.perf_counter() - started)
-    runs = [(method, method, ()) for method in VERSUS_LK_METHODS if method in methods]
-    runs += [(column, f"paper-{method}", ("-c", str(PAPER_CONFIG))) for method, column in zip(paper, paper_columns(paper))]
-    for column, name, config in runs:
+    runs = [(method, method, method, ()) for method in VERSUS_LK_METHODS if method in methods]  # column, -m, file, -c
+    runs += [(column, method, f"paper-{method}", ("-c", str(PAPER_CONFIG)))
+             for method, column in zip(paper, paper_columns(paper))]
+    for column, method, name, config in runs:
         out = work / f"{stem}.{name}.h5"
-        seconds, _, code, message = run_track([str(folder), "-p", str(queries), *config, "-m", column.split()[-1],
-                                               "-o", str(out), *extra])
+        seconds, _, code, message = run_track([str(folder), "-p", str(queries), *config, "-m", method, "-o", str(out),
+                                               *extra])
         results[column] = (None, message) if code else (score_tracks(read_tracks(out)[0], truth, "first")[0], seconds)
     return results
 
