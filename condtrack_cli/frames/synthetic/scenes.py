@@ -305,7 +305,7 @@ def nonrigid(seed: int = 0, size: tuple[int, int] = DEFAULT_SIZE, n_frames: int 
     """A face photograph warped by a smooth deformation that changes over time, with a slow global motion and a slow
     local contrast change (issue 45).
 
-    The "astronaut" photograph (a portrait) under a camera drifting 0.3-0.8 px/frame, turning 0.05-0.15 deg/frame
+    The face of the "astronaut" photograph (``FACE``, magnified to fill the frame) under a camera drifting 0.3-0.8 px/frame, turning 0.05-0.15 deg/frame
     and zooming 0.1-0.2 %/frame about the frame centre (``maps[0]``, the global part only), and five Gaussian
     displacement bumps whose amplitudes swing sinusoidally up to 3-6 px (:mod:`deform`: a frame-k pixel y shows
     the frame-0 material at ``x0 = u + D(u, k)``, u = maps[0, k]^-1 y). The material's contrast about grey 128 is
@@ -328,6 +328,10 @@ def nonrigid(seed: int = 0, size: tuple[int, int] = DEFAULT_SIZE, n_frames: int 
                  visible=_inside(tracks, (w, h), 0), layer=layer_index, layer_names=("background",), maps=camera[None])
 
 
+#: The face (hair to collar) in the "astronaut" photograph: left, top, right, bottom (source pixels).
+FACE = (110.0, 8.0, 350.0, 250.0)
+
+
 def _nonrigid_parts(seed: int, size: tuple[int, int], n_frames: int, noise: float):
     """The ``nonrigid`` scene's W, H, photograph layer (global motion), displacement bumps, contrast-gain bumps
     ((J, 1) directions) and noise rng."""
@@ -336,7 +340,7 @@ def _nonrigid_parts(seed: int, size: tuple[int, int], n_frames: int, noise: floa
     drift = _rotation(rng.uniform(0, 2 * np.pi)) @ [rng.uniform(0.3, 0.8), 0.0]
     turn = _rotation(np.radians(rng.choice([-1, 1]) * rng.uniform(0.05, 0.15)),
                      rng.uniform(1.001, 1.002) ** rng.choice([-1, 1]))
-    layer = _background("astronaut", _chain([_about(centre, turn, drift)] * (n_frames - 1)), (w, h), rng)
+    layer = _background("astronaut", _chain([_about(centre, turn, drift)] * (n_frames - 1)), (w, h), rng, FACE)
     bumps = random_bumps(rng, (w, h), n_frames)
     contrast = Bumps(centres=rng.uniform(0.1, 0.9, (3, 2)) * [w - 1, h - 1], directions=np.ones((3, 1)),
                      sigmas=rng.uniform(0.15, 0.25, 3) * min(w, h),
