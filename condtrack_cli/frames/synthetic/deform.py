@@ -14,13 +14,15 @@ converged to 1e-10 px: exact ground truth whatever the renderer's grid.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 #: Newton's method stops when every step is below this (px), after at most NEWTON_STEPS steps.
 NEWTON_TOLERANCE = 1e-10
 NEWTON_STEPS = 50
+#: Smallest Jacobian determinant of a random deformation (:func:`random_bumps`): no fold, no strong squeeze.
+MIN_JACOBIAN = 0.5
 
 
 @dataclass(frozen=True)
@@ -66,17 +68,26 @@ class Bumps:
         raise ValueError(f"the deformation of frame {k} could not be inverted (it folds)")
 
 
-def random_bumps(rng: np.random.Generator, size: tuple[int, int], n_frames: int, count: int = 5) -> Bumps:
-    """``count`` bumps over a W x H frame: centres inside it, widths 12-20 % of the smaller side, peak amplitudes
-    A_j 1.5-3 px (|a_j| <= 2 A_j), 0.5-1.5 cycles over the sequence, random directions and phases."""
+def random_bumps(rng: np.random.Generator, size: tuple[int, int], n_frames: int, count: int = 8) -> Bumps:
+    """``count`` bumps over a W x H frame: centres inside it, widths s_j 6-10 % of the smaller side, peak amplitudes
+    A_j 4-8 px (|a_j| <= 2 A_j), 1.5-3 cycles over the sequence, random directions and phases.
+
+    Where the bumps together would fold the frame (the Jacobian determinant of u -> u + D(u, k) below
+    ``MIN_JACOBIAN`` somewhere on a 4 px grid over the frame and 8 px beyond), every amplitude is scaled down by
+    0.8 until it no longer does.
+    """
     w, h = size
     side = min(w, h)
     angle = rng.uniform(0, 2 * np.pi, count)
-    peak, cycles, phase = rng.uniform(1.5, 3.0, count), rng.uniform(0.5, 1.5, count), rng.uniform(0, 2 * np.pi, count)
+    peak, cycles, phase = rng.uniform(4.0, 8.0, count), rng.uniform(1.5, 3.0, count), rng.uniform(0, 2 * np.pi, count)
     t = np.arange(n_frames) / (n_frames - 1)
-    return Bumps(
+    bumps = Bumps(
         centres=np.column_stack([rng.uniform(0.1, 0.9, count) * (w - 1), rng.uniform(0.1, 0.9, count) * (h - 1)]),
         directions=np.column_stack([np.cos(angle), np.sin(angle)]),
-        sigmas=rng.uniform(0.12, 0.2, count) * side,
+        sigmas=rng.uniform(0.06, 0.10, count) * side,
         amplitudes=peak[:, None] * (np.sin(2 * np.pi * cycles[:, None] * t + phase[:, None]) - np.sin(phase)[:, None]),
     )
+    grid = np.stack(np.meshgrid(np.arange(-8.0, w + 8, 4), np.arange(-8.0, h + 8, 4)), axis=-1).reshape(-1, 2)
+    while min(np.linalg.det(bumps.jacobian(grid, k)).min() for k in range(n_frames)) < MIN_JACOBIAN:
+        bumps = replace(bumps, amplitudes=0.8 * bumps.amplitudes)
+    return bumps

@@ -305,12 +305,14 @@ def nonrigid(seed: int = 0, size: tuple[int, int] = DEFAULT_SIZE, n_frames: int 
     """A face photograph warped by a smooth deformation that changes over time, with a slow global motion and a slow
     local contrast change (issue 45).
 
-    The face of the "astronaut" photograph (``FACE``, magnified to fill the frame) under a camera drifting 0.3-0.8 px/frame, turning 0.05-0.15 deg/frame
-    and zooming 0.1-0.2 %/frame about the frame centre (``maps[0]``, the global part only), and five Gaussian
-    displacement bumps whose amplitudes swing sinusoidally up to 3-6 px (:mod:`deform`: a frame-k pixel y shows
-    the frame-0 material at ``x0 = u + D(u, k)``, u = maps[0, k]^-1 y). The material's contrast about grey 128 is
-    multiplied by ``1 + t_k g(x0)``, g a sum of three Gaussian bumps of +-0.25-0.45 (t_k = k / (F - 1)): a patch
-    taken on frame 0 drifts slowly in appearance. Truth: the forward map by Newton's method (exact to 1e-10 px).
+    The face of the "astronaut" photograph (``FACE``, magnified to fill the frame) under a camera drifting
+    0.5-1.5 px/frame, turning 0.1-0.3 deg/frame and zooming 0.1-0.2 %/frame about the frame centre (``maps[0]``,
+    the global part only), and eight Gaussian displacement bumps 6-10 % of the smaller side wide whose amplitudes
+    swing sinusoidally (1.5-3 cycles) up to 8-16 px, scaled down where they would fold the frame
+    (:func:`deform.random_bumps`; a frame-k pixel y shows the frame-0 material at ``x0 = u + D(u, k)``,
+    u = maps[0, k]^-1 y). The material's contrast about grey 128 is multiplied by ``1 + t_k g(x0)``, g a sum of
+    three Gaussian bumps of +-0.25-0.45 (t_k = k / (F - 1)): a patch taken on frame 0 drifts slowly in
+    appearance. Truth: the forward map by Newton's method (exact to 1e-10 px).
     One layer, ~60 points queried on frame 0.
     """
     w, h, layer, bumps, contrast, noise_rng = _nonrigid_parts(seed, size, n_frames, noise)
@@ -337,8 +339,8 @@ def _nonrigid_parts(seed: int, size: tuple[int, int], n_frames: int, noise: floa
     ((J, 1) directions) and noise rng."""
     w, h, rng, noise_rng = _start(seed, size, n_frames, noise)
     centre = np.array([w - 1, h - 1]) / 2
-    drift = _rotation(rng.uniform(0, 2 * np.pi)) @ [rng.uniform(0.3, 0.8), 0.0]
-    turn = _rotation(np.radians(rng.choice([-1, 1]) * rng.uniform(0.05, 0.15)),
+    drift = _rotation(rng.uniform(0, 2 * np.pi)) @ [rng.uniform(0.5, 1.5), 0.0]
+    turn = _rotation(np.radians(rng.choice([-1, 1]) * rng.uniform(0.1, 0.3)),
                      rng.uniform(1.001, 1.002) ** rng.choice([-1, 1]))
     layer = _background("astronaut", _chain([_about(centre, turn, drift)] * (n_frames - 1)), (w, h), rng, FACE)
     bumps = random_bumps(rng, (w, h), n_frames)
