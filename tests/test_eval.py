@@ -606,25 +606,85 @@ def test_cli_plot_without_matplotlib_is_one_error_line(files, tmp_path, monkeypa
     assert result.stdout == "" and not out.exists()
 
 
-def test_bench_coverage_table_checks_issue_27_targets():
-    """The bench's coverage table (``bench/versus_lk.py``): one row per set and method, the Student-t and the Gaussian
-    readings, one check per target of issue 27 (on the Student-t reading).
-
-    Set a is calibrated on every level; set b's auto has a core too wide (cov50 0.80) and its cnlf failed to run.
-    """
+def test_bench_coverage_table_lists_every_reading_per_set_and_method():
+    """The bench's coverage table (``bench/versus_lk.py``): one row per set and covariance method that ran, the
+    Student-t and the Gaussian readings; a failed run says so; no check (``group_tables`` checks the bands)."""
     from condtrack_cli.evaluate.bench.versus_lk import coverage_table
 
     calibrated = {"cov50": 0.5, "cov90": 0.9, "cov95": 0.95, "cov99": 0.99, "cov50_gauss": 0.7, "cov90_gauss": 0.93,
                   "cov95_gauss": 0.96, "cov99_gauss": 0.98, "cov_finite": 1.0, "nees": 2.0, "cov50_rescaled": 0.5}
-    wide = dict(calibrated, cov50=0.8)
     per_set = {"a": {m: (calibrated, 1.0) for m in ("auto", "clf", "cnlf")},
-               "b": {"auto": (wide, 1.0), "clf": (calibrated, 1.0), "cnlf": (None, "exit 1")}}
+               "b": {"auto": (calibrated, 1.0), "cnlf": (None, "exit 1")}}
     lines = coverage_table(per_set, "set")
     assert "| a | clf | 0.500 | 0.900 | 0.950 | 0.990 | 0.700 | 0.930 | 0.960 | 0.980 | 1.000 | 2.000 | 0.500 |" in lines
     assert "| b | cnlf | failed |" in lines
-    checks = [line for line in lines if line.startswith("- [")]
-    assert checks[0] == "- [ ] FAIL: cov50 in [0.42, 0.62] on 4 of 5 runs; not on: b auto 0.800"
-    assert all(line.startswith("- [x] pass") for line in checks[1:]) and len(checks) == 5
+    assert not any(line.startswith("| b | clf") for line in lines)  # not run on b
+    assert len(lines) == 2 + 3 + 2 and not any(line.startswith("- [") for line in lines)
+
+
+def _coverage(cov50: float, cov90: float, cov95: float, cov99: float, delta: float = 0.8) -> dict:
+    return {"delta_avg": delta, "cov50": cov50, "cov90": cov90, "cov95": cov95, "cov99": cov99, "cov_finite": 1.0}
+
+
+def test_bench_group_tables_check_issue_45_group_and_set_bands():
+    """``group_tables``: one table per group of sets (its members by glob, the rest as "other"), δ_avg of each
+    column that ran and the four Student-t levels of each covariance method, the group's mean row; the group bands
+    are checked on the mean, the set bands (50 % in [0.35, 0.75], 95 % in [0.85, 0.99]) on every set.
+
+    Face: two clips whose mean is in every band, but clip b's 50 % (0.30) is outside the set band. KITTI: one clip,
+    95 % 0.99 outside the group band [0.90, 0.98] but inside the set band."""
+    from condtrack_cli.evaluate.bench.versus_lk import group_tables
+
+    lk = ({"delta_avg": 0.7, "cov50": None, "cov90": None, "cov95": None, "cov99": None, "cov_finite": None}, 1.0)
+    per_set = {
+        "dudek_a": {"lk": lk, "auto": (_coverage(0.70, 0.92, 0.96, 0.99), 1.0)},
+        "dudek_b": {"lk": lk, "auto": (_coverage(0.30, 0.88, 0.92, 0.98, 0.6), 1.0)},
+        "kt3dmoseg_x": {"lk": lk, "auto": (_coverage(0.50, 0.90, 0.99, 1.0), 1.0)},
+        "elsewhere": {"lk": lk, "auto": (_coverage(0.50, 0.90, 0.95, 0.99), 1.0)},
+    }
+    points = {name: 7 for name in per_set}
+    lines = group_tables(per_set, points, (("KITTI", "kt3dmoseg_*"), ("face", "dudek_*")))
+    assert [line for line in lines if line.startswith("### ")] == ["### KITTI", "### face", "### other"]
+    face = lines[lines.index("### face"):lines.index("### other")]
+    assert "| set | points | lk | auto | auto cov50 / 90 / 95 / 99 |" in face
+    assert "| dudek_b | 7 | 0.700 | 0.600 | 0.30 / 0.88 / 0.92 / 0.98 |" in face
+    assert "| face mean |  | 0.700 | 0.700 | 0.50 / 0.90 / 0.94 / 0.98 |" in face
+    checks = [line for line in face if line.startswith("- [")]
+    assert checks[:4] == ["- [x] pass: face mean cov50 of auto 0.500 in [0.42, 0.62]",
+                          "- [x] pass: face mean cov90 of auto 0.900 in [0.85, 0.95]",
+                          "- [x] pass: face mean cov95 of auto 0.940 in [0.90, 0.98]",
+                          "- [x] pass: face mean cov99 of auto 0.985 in [0.97, 1.00]"]
+    assert "- [ ] FAIL: cov50 of auto in [0.35, 0.75] on 1 of 2 sets; not on: dudek_b 0.300" in checks
+    assert "- [x] pass: cov95 of auto in [0.85, 0.99] on 2 of 2 sets" in checks
+    kitti = lines[lines.index("### KITTI"):lines.index("### face")]
+    assert "- [ ] FAIL: KITTI mean cov95 of auto 0.990 in [0.90, 0.98]" in kitti
+    assert "- [x] pass: cov95 of auto in [0.85, 0.99] on 1 of 1 sets" in kitti
+
+
+def test_bench_set_globs_pick_sets_and_scenes():
+    """``--sets`` globs (``selected``): any matching glob keeps a name, in the names' order; None keeps all. The
+    synthetic table's rows are the five scenes at seed 0, then nonrigid at its reporting seeds, never a tuning one."""
+    from condtrack_cli.evaluate.bench.versus_lk import NONRIGID_TUNE_SEEDS, selected, synthetic_scenes
+
+    names = ["badja_camel", "dudek_00", "dudek_01", "kt3dmoseg_seq005_clip01", "nonrigid_0"]
+    assert selected(names, ("dudek_*", "nonrigid_*")) == ["dudek_00", "dudek_01", "nonrigid_0"]
+    assert selected(names, ("dudek_01",)) == ["dudek_01"]
+    assert selected(names, None) == names
+    rows = synthetic_scenes()
+    assert [row[0] for row in rows] == ["camera_motion", "occlusion", "ring", "illumination", "fast",
+                                        "nonrigid_0", "nonrigid_4", "nonrigid_5"]
+    assert not {seed for _, scene, seed in rows if scene == "nonrigid"} & set(NONRIGID_TUNE_SEEDS)
+
+
+def test_bench_versus_lk_refuses_an_unknown_method(tmp_path):
+    """``--methods`` names columns of the section; a misspelt one is a usage error (exit 2) naming the valid ones."""
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-m", "condtrack_cli.evaluate.bench", "--versus-lk", "--methods",
+                             "lk,dsi", "--work", str(tmp_path)], capture_output=True, text=True)
+    assert result.returncode == 2 and result.stdout == ""
+    assert "--methods: unknown column 'dsi'; valid: lk, dis, auto, clf, cnlf, stk" in result.stderr
 
 
 def test_bench_meter_reads_the_command_s_own_peak_memory():

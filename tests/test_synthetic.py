@@ -11,6 +11,7 @@ from click.testing import CliRunner
 
 from condtrack_cli.cli import cli
 from condtrack_cli.frames import synthetic
+from condtrack_cli.frames.synthetic.deform import Bumps, random_bumps
 
 PATCH = np.stack(np.meshgrid(np.arange(-3.0, 4.0), np.arange(-3.0, 4.0)), axis=-1).reshape(-1, 2)  # (49, 2) offsets
 
@@ -101,7 +102,7 @@ def test_shapes_queries_and_visibility(scenes, name):
     assert not (scene.visible & ~in_frame(scene)).any()  # outside the frame is never visible
 
 
-@pytest.mark.parametrize("name", list(synthetic.SCENES))
+@pytest.mark.parametrize("name", [name for name in synthetic.SCENES if name != "nonrigid"])
 def test_maps_carry_every_position_back_to_its_query(scenes, name):
     scene = scenes[name]
     to_frame0 = invert(scene.maps[scene.layer])  # (P, F, 2, 3)
@@ -271,3 +272,79 @@ def test_synth_help_lists_every_scene():
 
     text = " ".join(CliRunner().invoke(cli, ["synth", "--help"]).output.split())
     assert f"Scene to write into OUT: {', '.join(SCENES)}." in text
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_nonrigid_truth_is_exact(seed):
+    """The ``nonrigid`` scene (issue 45), small and short: the renderer's own backward map carries every true
+    position back to its query's frame-0 position within 1e-9 px, the frames are that renderer's output (noiseless:
+    the rounded intensity at each pixel), the noiseless intensity along the truth equals the query's intensity times
+    the scene's slow contrast gain within 1e-9 grey levels (1 px off it differs by >= 1 grey level on most points),
+    and the motion is non-rigid: the best affine map of frame 0's true positions to frame k's misses them by > 0.3 px."""
+    from condtrack_cli.frames.synthetic.scenes import _nonrigid_intensity, _nonrigid_parts, _nonrigid_source
+
+    size, n_frames = (128, 96), 8
+    scene = synthetic.make_scene("nonrigid", seed=seed, size=size, n_frames=n_frames, noise=0.0)
+    _, _, layer, bumps, contrast, _ = _nonrigid_parts(seed, size, n_frames, 0.0)
+    assert len(scene.queries) >= 6 and (scene.queries.frame == 0).all()
+    x0 = scene.tracks[:, 0]
+    grid = np.stack(np.meshgrid(np.arange(128.0), np.arange(96.0)), axis=-1).reshape(-1, 2)
+    no_gain = Bumps(contrast.centres, contrast.directions, contrast.sigmas, np.zeros_like(contrast.amplitudes))
+    reference = _nonrigid_intensity(layer, bumps, no_gain, x0, 0)
+    misfit = []
+    for k in range(n_frames):
+        np.testing.assert_allclose(_nonrigid_source(layer, bumps, scene.tracks[:, k], k), x0, rtol=0, atol=1e-9)
+        rendered = _nonrigid_intensity(layer, bumps, contrast, grid, k).reshape(96, 128)
+        np.testing.assert_array_equal(scene.frames[k], np.clip(np.rint(rendered), 0, 255))
+        along = _nonrigid_intensity(layer, bumps, no_gain, scene.tracks[:, k], k)
+        np.testing.assert_allclose(along, reference, rtol=0, atol=1e-9)
+        off = _nonrigid_intensity(layer, bumps, no_gain, scene.tracks[:, k] + [1.0, 0.0], k)
+        assert np.median(np.abs(off - reference)) >= 1.0
+        design = np.column_stack([x0, np.ones(len(x0))])
+        fit, *_ = np.linalg.lstsq(design, scene.tracks[:, k], rcond=None)
+        misfit.append(np.abs(design @ fit - scene.tracks[:, k]).max())
+    assert max(misfit) > 0.3, misfit
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 4, 5])
+def test_nonrigid_deformation_never_folds_and_its_newton_inverse_is_exact(seed):
+    """Over the default frame, every frame's deformation u -> u + D(u, k) keeps a Jacobian determinant >= 0.5 (a
+    diffeomorphism) and :meth:`Bumps.forward` inverts it within 1e-9 px; the displacement reaches 6 px or more."""
+    from condtrack_cli.frames.synthetic.scenes import _nonrigid_parts
+
+    _, _, _, bumps, _, _ = _nonrigid_parts(seed, synthetic.DEFAULT_SIZE, 30, 2.0)
+    w, h = synthetic.DEFAULT_SIZE
+    grid = np.stack(np.meshgrid(np.arange(0.0, w, 4), np.arange(0.0, h, 4)), axis=-1).reshape(-1, 2)
+    largest = 0.0
+    for k in range(30):
+        assert np.linalg.det(bumps.jacobian(grid, k)).min() >= 0.5
+        moved = grid + bumps.displacement(grid, k)
+        np.testing.assert_allclose(bumps.forward(moved, k), grid, rtol=0, atol=1e-9)
+        largest = max(largest, np.abs(bumps.displacement(grid, k)).max())
+    assert largest >= 6.0
+
+
+def test_bumps_jacobian_matches_finite_differences():
+    """``Bumps.jacobian`` against central differences of ``Bumps.displacement`` (step 1e-4 px): within 1e-6."""
+    rng = np.random.default_rng(7)
+    bumps = random_bumps(rng, (120, 90), 5)
+    u = rng.uniform(0, 100, (20, 2))
+    numeric = np.stack([(bumps.displacement(u + step, 3) - bumps.displacement(u - step, 3)) / 2e-4
+                        for step in ([1e-4, 0.0], [0.0, 1e-4])], axis=2) + np.eye(2)
+    np.testing.assert_allclose(bumps.jacobian(u, 3), numeric, rtol=0, atol=1e-6)
+
+
+def test_random_bumps_scale_down_a_deformation_that_would_fold():
+    """Twenty bumps of 4-8 px peak on a 64 x 64 frame would fold it; ``random_bumps`` scales their amplitudes
+    down by 0.8 at a time: the result keeps the determinant >= MIN_JACOBIAN on its 4 px grid (and > 0 on a 1 px
+    one), the amplitudes one step larger do not, and the largest amplitude is under 2 x 4 px."""
+    from condtrack_cli.frames.synthetic.deform import MIN_JACOBIAN
+
+    bumps = random_bumps(np.random.default_rng(5), (64, 64), 10, count=20)
+    coarse = np.stack(np.meshgrid(np.arange(-8.0, 72, 4), np.arange(-8.0, 72, 4)), axis=-1).reshape(-1, 2)
+    fine = np.stack(np.meshgrid(np.arange(0.0, 64), np.arange(0.0, 64)), axis=-1).reshape(-1, 2)
+    larger = Bumps(bumps.centres, bumps.directions, bumps.sigmas, bumps.amplitudes / 0.8)
+    assert min(np.linalg.det(bumps.jacobian(coarse, k)).min() for k in range(10)) >= MIN_JACOBIAN
+    assert min(np.linalg.det(bumps.jacobian(fine, k)).min() for k in range(10)) > 0
+    assert min(np.linalg.det(larger.jacobian(coarse, k)).min() for k in range(10)) < MIN_JACOBIAN
+    assert np.abs(bumps.amplitudes).max() < 8.0

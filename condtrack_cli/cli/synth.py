@@ -24,7 +24,7 @@ class _Size(click.ParamType):
 
 @click.command("synth")
 @click.argument("out", type=click.Path(file_okay=False))
-@click.option("--scene", help="Scene to write into OUT: camera_motion, occlusion, ring, illumination, fast, jumps, card.")
+@click.option("--scene", help="Scene to write into OUT: camera_motion, occlusion, ring, illumination, fast, jumps, card, nonrigid.")
 @click.option("--samples", is_flag=True, help="Write the shipped sample sequences under OUT instead (make samples).")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--size", type=_Size(), default="320x240", show_default=True, help="WIDTHxHEIGHT in pixels.")

@@ -14,7 +14,9 @@ it is the baseline as a user would write it, scored by the same code.
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -24,11 +26,17 @@ from condtrack_cli.registry import method_code
 from condtrack_cli.types import Queries, Tracks
 
 
-def opencv_lk(folder: str | Path, queries: Queries, fb_threshold: float = 1.0) -> Tracks:
-    """Track ``queries`` through the frames of ``folder`` (read as condtrack reads them) with plain OpenCV LK.
+#: (previous image, image, (n, 2) float32 positions on the previous image) -> ((n, 2) positions, (n,) visible flags).
+Step = Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
+
+def chain_frame_to_frame(folder: str | Path, queries: Queries, step: Step, method: str) -> Tracks:
+    """Track ``queries`` through the frames of ``folder`` (read as condtrack reads them) by chaining ``step``.
+
+    Each point starts at its query on its query frame (visible there) and moves
+    by ``step`` from each frame to the next, all active points at once.
     Returns Tracks (P, F): positions from each query frame on, NaN before;
-    cov NaN; method recorded as ``stk`` (OpenCV's LK); z and R NaN.
+    cov NaN, dof inf; every row's method ``method``; z and R NaN.
     """
     frames = open_frames(FrameSettings(), folder)
     p, f = len(queries), frames.info.n_frames
@@ -39,14 +47,22 @@ def opencv_lk(folder: str | Path, queries: Queries, fb_threshold: float = 1.0) -
     for k, image in enumerate(frames):
         active = np.flatnonzero(queries.frame < k)
         if prev is not None and active.size:
-            current[active], visible[active, k] = track_step(prev, image, current[active], fb_threshold)
+            current[active], visible[active, k] = step(prev, image, current[active])
             xy[active, k] = current[active]
         new = np.flatnonzero(queries.frame == k)
         xy[new, k], visible[new, k] = queries.xy[new], True
         prev = image
-    method = np.where(np.isfinite(xy[..., 0]), method_code("stk"), -1).astype(np.int8)
+    code = np.where(np.isfinite(xy[..., 0]), method_code(method), -1).astype(np.int8)
     return Tracks(
         queries=queries, xy=xy, cov=np.full((p, f, 2, 2), np.nan), dof=np.where(np.isfinite(xy[..., 0]), np.inf, np.nan),
-        visible=visible, method=method,
+        visible=visible, method=code,
         z=np.full((p, f, 2), np.nan), R=np.full((p, f, 2, 2), np.nan),
     )
+
+
+def opencv_lk(folder: str | Path, queries: Queries, fb_threshold: float = 1.0) -> Tracks:
+    """Track ``queries`` through the frames of ``folder`` with plain OpenCV LK (:func:`chain_frame_to_frame`).
+
+    Rows' method recorded as ``stk`` (OpenCV's LK).
+    """
+    return chain_frame_to_frame(folder, queries, partial(track_step, fb_threshold=fb_threshold), "stk")

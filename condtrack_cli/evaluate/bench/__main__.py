@@ -18,6 +18,10 @@ the smallest stride that fits) to bound the run time.
 ``--speed`` only the speed comparison and the profile; ``--memory`` only the
 peak memory by clip length (``memory_table``).
 
+``--versus-lk`` prints only the section against OpenCV LK and chained DIS (issues 11 and 45), with its
+per-group tables; ``--methods`` and ``--sets`` narrow it to some columns and sets (a quick subset),
+``--nonrigid tune`` puts the nonrigid scene's tuning seeds in its synthetic table instead of the reporting ones.
+
 ``--hard tune|report`` prints only issue 31's hard cases (``hard.py``) on the tuning
 or the reporting seeds.
 
@@ -45,7 +49,9 @@ from condtrack_cli.evaluate.bench.accuracy import accuracy_table, calibration_ta
 from condtrack_cli.evaluate.bench.common import REPO
 from condtrack_cli.evaluate.bench.hard import REPORT_SEEDS, TUNE_SEEDS, hard_cases_table
 from condtrack_cli.evaluate.bench.speed import batch_table, memory_table, profile_table, speed_table
-from condtrack_cli.evaluate.bench.versus_lk import PAPER_METHODS, versus_lk_section
+from condtrack_cli.evaluate.bench.versus_lk import (
+    COLUMNS, NONRIGID_REPORT_SEEDS, NONRIGID_TUNE_SEEDS, PAPER_METHODS, versus_lk_section,
+)
 from condtrack_cli.progress import show_warnings
 
 
@@ -120,6 +126,13 @@ def main() -> None:
     parser.add_argument("--lk-points", type=int, default=300,
                         help="with --versus-lk: most queries per real set (300; fewer to bound the paper preset's time)")
     parser.add_argument("--no-synthetic", action="store_true", help="with --versus-lk: the real sets only")
+    parser.add_argument("--methods", default=",".join(COLUMNS), metavar="METHODS",
+                        help=f"with --versus-lk: the columns to run, comma-separated among {','.join(COLUMNS)} (all)")
+    parser.add_argument("--sets", metavar="GLOBS",
+                        help="with --versus-lk: only the real sets and synthetic scenes whose names match one of these "
+                             "comma-separated globs (e.g. 'dudek_*,nonrigid_*')")
+    parser.add_argument("--nonrigid", choices=("tune", "report"), default="report",
+                        help="with --versus-lk: the nonrigid scene's tuning or reporting seeds in the synthetic table")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="with --versus-lk or --hard: a config override for every condtrack run (a variant's numbers)")
     args = parser.parse_args()
@@ -132,8 +145,14 @@ def main() -> None:
         args.work.mkdir(parents=True, exist_ok=True)
         extra = tuple(arg for override in args.set for arg in ("--set", override))
         paper = tuple(method for method in args.paper.split(",") if method)
+        methods = tuple(method for method in args.methods.split(",") if method)
+        unknown = [method for method in methods if method not in COLUMNS]
+        if unknown:
+            parser.error(f"--methods: unknown column {unknown[0]!r}; valid: {', '.join(COLUMNS)}")
+        sets = tuple(pattern for pattern in args.sets.split(",") if pattern) if args.sets else None
+        seeds = NONRIGID_TUNE_SEEDS if args.nonrigid == "tune" else NONRIGID_REPORT_SEEDS
         print("\n".join(versus_lk_section(args.work, args.shared_data, extra, paper, args.lk_points,
-                                          not args.no_synthetic)))
+                                          not args.no_synthetic, methods, sets, seeds)))
         return
     if args.support:
         print("\n".join(support_table(args.support)))

@@ -49,7 +49,7 @@ def hard_cases_table(work: Path, seeds: tuple[int, ...], extra: tuple[str, ...] 
             stem = f"hard_{scene}_{seed}"
             folder = write_scene(make_scene(scene, seed), work / stem)
             truth = load_gt_csv(folder / "tracks.csv")
-            results = score_versus_lk(folder, folder / "queries.csv", truth, work, stem, extra, paper=())
+            results = score_versus_lk(folder, folder / "queries.csv", truth, work, stem, extra, paper=(), methods=COLUMNS)
             metrics = {column: results[column][0] for column in COLUMNS}
             lines.append(f"| {scene} | {seed} | {len(truth.point_id)} | "
                          + " | ".join(_cell(results[c]) for c in COLUMNS) + " |")

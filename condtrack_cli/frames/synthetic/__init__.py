@@ -51,8 +51,13 @@ Files written by :func:`write_scene` (all positions with ``%.4f``, ``\\n`` line 
 Run ``condtrack synth DIR --samples`` to write the shipped samples, or
 ``condtrack synth DIR --scene NAME`` for one scene.
 
-Modules: ``affine`` (maps), ``layers`` (shapes, textures, rendering), ``truth``
-(positions, visibility, query picking), ``scenes`` (the seven scenes), ``files`` (writing).
+The exception is ``nonrigid`` (issue 45): its one layer is also deformed by smooth
+time-varying displacement bumps (``deform``) on top of its affine map, which is all
+``maps`` holds; its truth is the exact inverse of the renderer's backward map.
+
+Modules: ``affine`` (maps), ``layers`` (shapes, textures, rendering), ``deform``
+(non-rigid deformations), ``truth`` (positions, visibility, query picking), ``scenes``
+(the eight scenes), ``files`` (writing).
 """
 
 from condtrack_cli.frames.synthetic.files import write_samples, write_scene  # noqa: F401

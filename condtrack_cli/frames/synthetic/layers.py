@@ -117,22 +117,25 @@ def _coeffs(name: str) -> np.ndarray:
     return coeffs
 
 
-def _background(photo: str, camera: np.ndarray, size: tuple[int, int], rng: np.random.Generator) -> _Layer:
+def _background(photo: str, camera: np.ndarray, size: tuple[int, int], rng: np.random.Generator,
+                region: tuple[float, float, float, float] | None = None) -> _Layer:
     """Background layer: ``photo`` moved by the camera maps (F, 2, 3) (frame 0 -> frame k).
 
     The photograph is placed (at a seeded random offset, magnified only if it is too
-    small) so that every frame's footprint lies SOURCE_MARGIN pixels inside it.
+    small) so that every frame's footprint lies SOURCE_MARGIN pixels inside it, or inside
+    ``region`` (left, top, right, bottom, source pixels) when given.
     """
     coeffs = _coeffs(photo)
     ph, pw = coeffs.shape
     w, h = size
+    left, top, right, bottom = region or (0.0, 0.0, pw - 1.0, ph - 1.0)
     corners = np.array([[0.0, 0.0], [w - 1.0, 0.0], [0.0, h - 1.0], [w - 1.0, h - 1.0]])
     footprint = _apply(_invert(camera)[:, None], corners[None])  # (F, 4, 2) in frame-0 pixels
     low, high = footprint.min(axis=(0, 1)), footprint.max(axis=(0, 1))
-    room = np.array([pw, ph], float) - 1 - 2 * SOURCE_MARGIN
+    room = np.array([right - left, bottom - top]) - 2 * SOURCE_MARGIN
     scale = max(1.0, *((high - low) / room))
     slack = np.maximum(room - (high - low) / scale, 0.0)  # 0 along the side that set the scale
-    offset = SOURCE_MARGIN - low / scale + rng.uniform(0.0, 1.0, 2) * slack  # source = frame0 / scale + offset
+    offset = np.array([left, top]) + SOURCE_MARGIN - low / scale + rng.uniform(0.0, 1.0, 2) * slack  # source = frame0 / scale + offset
     to_frame0 = np.array([[scale, 0.0, -scale * offset[0]], [0.0, scale, -scale * offset[1]]])
     return _Layer(coeffs, _compose(camera, to_frame0))
 

@@ -1,4 +1,4 @@
-"""The scenes (camera_motion, occlusion, ring, illumination, fast, jumps, card): layers and motions, assembled with their truth."""
+"""The scenes (camera_motion, occlusion, ring, illumination, fast, jumps, card, nonrigid): layers and motions, assembled with their truth."""
 
 from __future__ import annotations
 
@@ -7,8 +7,9 @@ from typing import Callable
 
 import numpy as np
 
-from condtrack_cli.frames.synthetic.affine import _about, _chain, _rotation
-from condtrack_cli.frames.synthetic.layers import _background, _Band, _coeffs, _Disk, _Layer, _Rect, _render
+from condtrack_cli.frames.synthetic.affine import _about, _apply, _chain, _invert, _rotation
+from condtrack_cli.frames.synthetic.deform import Bumps, random_bumps
+from condtrack_cli.frames.synthetic.layers import _background, _Band, _coeffs, _Disk, _grid, _Layer, _Rect, _render
 from condtrack_cli.frames.synthetic.truth import BORDER_MARGIN, _geometry, _inside, _pick
 from condtrack_cli.types import Queries
 
@@ -300,6 +301,69 @@ def card(seed: int = 0, size: tuple[int, int] = DEFAULT_SIZE, n_frames: int = 30
     return _build("card", seed, noise, (w, h), [background, occluder], ["background", "card"], plan, noise_rng)
 
 
+def nonrigid(seed: int = 0, size: tuple[int, int] = DEFAULT_SIZE, n_frames: int = 30, noise: float = 2.0) -> Scene:
+    """A face photograph warped by a smooth deformation that changes over time, with a slow global motion and a slow
+    local contrast change (issue 45).
+
+    The face of the "astronaut" photograph (``FACE``, magnified to fill the frame) under a camera drifting
+    0.5-1.5 px/frame, turning 0.1-0.3 deg/frame and zooming 0.1-0.2 %/frame about the frame centre (``maps[0]``,
+    the global part only), and eight Gaussian displacement bumps 6-10 % of the smaller side wide whose amplitudes
+    swing sinusoidally (1.5-3 cycles) up to 8-16 px, scaled down where they would fold the frame
+    (:func:`deform.random_bumps`; a frame-k pixel y shows the frame-0 material at ``x0 = u + D(u, k)``,
+    u = maps[0, k]^-1 y). The material's contrast about grey 128 is multiplied by ``1 + t_k g(x0)``, g a sum of
+    three Gaussian bumps of +-0.25-0.45 (t_k = k / (F - 1)): a patch taken on frame 0 drifts slowly in
+    appearance. Truth: the forward map by Newton's method (exact to 1e-10 px).
+    One layer, ~60 points queried on frame 0.
+    """
+    w, h, layer, bumps, contrast, noise_rng = _nonrigid_parts(seed, size, n_frames, noise)
+    grid = _grid((w, h))
+    frames = np.empty((n_frames, h, w), np.uint8)
+    for k in range(n_frames):
+        intensity = _nonrigid_intensity(layer, bumps, contrast, grid, k).reshape(h, w)
+        frames[k] = np.clip(np.rint(intensity + noise_rng.normal(0.0, noise, (h, w))), 0, 255)
+    layer_index, query_frame, x0 = _pick(frames, [layer], [(0, 0, 60)], (w, h))
+    camera = layer.maps
+    tracks = np.stack([_apply(camera[k], bumps.forward(x0, k)) for k in range(n_frames)], axis=1)
+    points = np.arange(len(x0))
+    return Scene(name="nonrigid", seed=seed, noise=float(noise), frames=frames,
+                 queries=Queries(points, query_frame, tracks[points, query_frame]), tracks=tracks,
+                 visible=_inside(tracks, (w, h), 0), layer=layer_index, layer_names=("background",), maps=camera[None])
+
+
+#: The face (hair to collar) in the "astronaut" photograph: left, top, right, bottom (source pixels).
+FACE = (110.0, 8.0, 350.0, 250.0)
+
+
+def _nonrigid_parts(seed: int, size: tuple[int, int], n_frames: int, noise: float):
+    """The ``nonrigid`` scene's W, H, photograph layer (global motion), displacement bumps, contrast-gain bumps
+    ((J, 1) directions) and noise rng."""
+    w, h, rng, noise_rng = _start(seed, size, n_frames, noise)
+    centre = np.array([w - 1, h - 1]) / 2
+    drift = _rotation(rng.uniform(0, 2 * np.pi)) @ [rng.uniform(0.5, 1.5), 0.0]
+    turn = _rotation(np.radians(rng.choice([-1, 1]) * rng.uniform(0.1, 0.3)),
+                     rng.uniform(1.001, 1.002) ** rng.choice([-1, 1]))
+    layer = _background("astronaut", _chain([_about(centre, turn, drift)] * (n_frames - 1)), (w, h), rng, FACE)
+    bumps = random_bumps(rng, (w, h), n_frames)
+    contrast = Bumps(centres=rng.uniform(0.1, 0.9, (3, 2)) * [w - 1, h - 1], directions=np.ones((3, 1)),
+                     sigmas=rng.uniform(0.15, 0.25, 3) * min(w, h),
+                     amplitudes=rng.choice([-1, 1], 3)[:, None] * rng.uniform(0.25, 0.45, 3)[:, None]
+                     * np.arange(n_frames) / (n_frames - 1))
+    return w, h, layer, bumps, contrast, noise_rng
+
+
+def _nonrigid_source(layer: _Layer, bumps: Bumps, y: np.ndarray, k: int) -> np.ndarray:
+    """(N, 2) frame-0 positions x0 of the material shown at frame-k positions y (N, 2) px (the backward map)."""
+    u = _apply(_invert(layer.maps[k]), y)
+    return u + bumps.displacement(u, k)
+
+
+def _nonrigid_intensity(layer: _Layer, bumps: Bumps, contrast: Bumps, y: np.ndarray, k: int) -> np.ndarray:
+    """(N,) noiseless float64 intensity of frame k of the ``nonrigid`` scene at frame-k positions y (N, 2) px."""
+    x0 = _nonrigid_source(layer, bumps, y, k)
+    gain = 1.0 + contrast.displacement(x0, k)[:, 0]
+    return 128.0 + gain * (layer.sample(_apply(_invert(layer.to_frame[0]), x0)) - 128.0)
+
+
 SCENES: dict[str, Callable[..., Scene]] = {
     "camera_motion": camera_motion,
     "occlusion": occlusion,
@@ -308,6 +372,7 @@ SCENES: dict[str, Callable[..., Scene]] = {
     "fast": fast,
     "jumps": jumps,
     "card": card,
+    "nonrigid": nonrigid,
 }
 
 
