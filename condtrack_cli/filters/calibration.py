@@ -60,9 +60,11 @@ The model, per point, reported covariance = max(lambda, 1) Sigma + D + W + C:
   it was taken at, which every later match of the new patch repeats. A re-take that
   the point's first patch does not confirm within ``drift_check`` px (``_anchored``:
   the first patch no longer matches there, its appearance has changed or the chain
-  of re-takes has left it) lifts W to at least ``drift_check``^2 on each axis
-  (``offset_floor``): the point is then at least that far from where its first
-  patch would put it, as far as the images can tell. On the face clips the re-takes
+  of re-takes has left it) lifts W to at least ``drift_check``^2 / 4 on each axis
+  (``offset_floor``): nothing then holds the offset below that reach, and an offset
+  spread evenly over the disk of radius ``drift_check`` has that per-axis variance
+  (the full ``drift_check``^2 made the synthetic scenes' and KITTI's 50 % ellipses
+  hold 0.76 and 0.65 of the truth, bench/history.md). On the face clips the re-takes
   are made on 70-90 % of the frames (the match's residual is 50-80 times the
   noise's), so W, not D, is most of their error: a steady offset of a few pixels.
 - C: the coasting excess, 0 on a found frame. While a point is not found for t

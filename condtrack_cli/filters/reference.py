@@ -147,7 +147,8 @@ class ReferenceMatcher:
         #: (P, t, t) each point's first reference patch, taken at its query (the anchor of ``drift_check``)
         self.anchors = np.zeros((n_points, t, t), np.float32)
         #: (P,) least per-axis variance of the offset of each point's reference re-taken on the last step (px^2):
-        #: ``drift_check``^2 where the first patch was not found within ``drift_check`` px of the re-take, else 0
+        #: ``drift_check``^2 / 4 where the first patch was not found within ``drift_check`` px of the re-take (the
+        #: per-axis variance of an offset spread evenly over the disk of that radius), else 0
         self.offset_floor = np.zeros(n_points)
         self.gate_r = np.repeat(settings.nominal_r * np.eye(2)[None], n_points, axis=0)
         self.noise_sigma: float | None = None
@@ -339,7 +340,7 @@ class ReferenceMatcher:
         self._take(index[candidates[steady]], patches[steady])
         retaken[candidates[steady]] = True
         if s.drift_check is not None:
-            self.offset_floor[index[candidates[steady & ~anchored]]] = s.drift_check**2
+            self.offset_floor[index[candidates[steady & ~anchored]]] = s.drift_check**2 / 4
         return retaken
 
     def _anchored(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
