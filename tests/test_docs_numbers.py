@@ -35,7 +35,8 @@ def markdown_tables(text: str) -> list[tuple[int, list[list[str]], str]]:
     """(line number, rows of cells, provenance) of every table outside code fences.
 
     A table's provenance is its section's text from the last heading up to the table, and the paragraph just
-    after it: where a table says which command and commit produced it.
+    after it: where a table says which command and commit produced it. A ``###`` subsection is part of its section
+    (the per-group tables of the section against LK and DIS share its command and commit).
     """
     lines = text.splitlines()
     tables = []
@@ -46,7 +47,7 @@ def markdown_tables(text: str) -> list[tuple[int, list[list[str]], str]]:
         line = lines[index]
         if line.startswith("```"):
             fenced = not fenced
-        elif not fenced and line.startswith("#"):
+        elif not fenced and line.startswith("#") and not line.startswith("###"):
             heading = index
         elif (not fenced and line.startswith("|") and index + 1 < len(lines)
               and SEPARATOR.match(lines[index + 1])):
@@ -204,7 +205,7 @@ def test_results_md_holds_todays_tables_and_points_to_the_history():
     late = [heading for heading, lines in found.items() if any(line.startswith("|") for line in lines)
             and not any(line.startswith("|") for line in lines[:SCREEN])]
     assert not late, f"sections whose first table is more than {SCREEN} lines down: {late}"
-    assert len(results.splitlines()) < 500
+    assert len(results.splitlines()) < 750  # the section against LK and DIS holds a table per group of sets (issue 45)
     titles = {heading[3:].split(" (")[0] for heading in found}
     assert titles >= set(bench_main.WRITTEN_SECTIONS) - {"Covariance calibration"}
     # every section of the history is one of results.md's, so a reader finds the history of what they read

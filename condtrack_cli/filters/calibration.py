@@ -63,8 +63,8 @@ The model, per point, reported covariance = max(lambda, 1) Sigma + D + W + C:
   of re-takes has left it) lifts W to at least ``drift_check``^2 / 4 on each axis
   (``offset_floor``): nothing then holds the offset below that reach, and an offset
   spread evenly over the disk of radius ``drift_check`` has that per-axis variance
-  (the full ``drift_check``^2 made the synthetic scenes' and KITTI's 50 % ellipses
-  hold 0.76 and 0.65 of the truth, bench/history.md). On the face clips the re-takes
+  (with the full ``drift_check``^2, KITTI's 50 % ellipses held 0.645 of the truth,
+  group mean of ``auto``; 0.621 with the quarter; bench/history.md). On the face clips the re-takes
   are made on 70-90 % of the frames (the match's residual is 50-80 times the
   noise's), so W, not D, is most of their error: a steady offset of a few pixels.
 - C: the coasting excess, 0 on a found frame. While a point is not found for t
@@ -108,8 +108,8 @@ by term and weighted by each term's trace (``scale_ratio``):
 - the aperture offset A (a query that failed the trackability test):
   ``RATIO_APERTURE`` 1, a bounded slide along an edge, not a tail;
 - the walk W: ``RATIO_WALK``, a sum of many re-takes' offsets, whose core is a
-  good part of its second moment (a Gaussian's would be all of it: 1; 0.3 keeps the
-  KITTI clips' 50 % ellipses in their band while the face clips' widen, bench/results.md);
+  good part of its second moment (a Gaussian's would be all of it: 1; at 1 the KITTI
+  clips' 50 % ellipses left their band while the face clips' widened, bench/history.md);
 - the rest of D (wrong matches): ``RATIO_DRIFT``, and the coasting C:
   ``RATIO_COAST``: both are mixtures of rare large errors and many small ones
   summarised by their second moment, so their core is a small part of it.
@@ -154,7 +154,8 @@ CORE_MAX = 0.562
 RATIO_APERTURE = 1.0
 RATIO_DRIFT = 0.00166
 RATIO_COAST = 0.142
-#: The re-take walk W's ratio (issue 45; chosen, not fitted: bench/results.md, "Calibration").
+#: The re-take walk W's ratio (issue 45; chosen among 0.00166, 0.3 and 1, not fitted: bench/history.md, "Against
+#: OpenCV LK and chained DIS").
 RATIO_WALK = 0.3
 #: Least ratio of a row (nu >= 2 / (1 - RATIO_MIN)).
 RATIO_MIN = 0.0023

@@ -57,13 +57,13 @@ from condtrack_cli.progress import show_warnings
 
 #: The titles (a ``## `` heading up to any " (") of the sections the full run writes.
 WRITTEN_SECTIONS = ("Accuracy", "Covariance calibration", "Speed", "Profile", "Memory by clip length", "Many clips",
-                    "Against OpenCV LK")
+                    "Against OpenCV LK and chained DIS")
 #: What bench/results.md holds, under its title.
 INTRO = [
     "Today's results, one section per part of the benchmark, each naming the command that wrote its tables and the",
     "commit they were measured at. `make bench` (`python -m condtrack_cli.evaluate.bench --out bench/results.md`) writes",
     "the sections Accuracy, Covariance calibration, Speed, Profile, Memory by clip length, Many clips and Against",
-    "OpenCV LK at one commit, and keeps the other sections of this file (the narrower runs pasted in: Calibration,",
+    "OpenCV LK and chained DIS at one commit, and keeps the other sections of this file (the narrower runs pasted in: Calibration,",
     "Student-t; Hard cases; The paper preset). The sections below were measured at different commits, each given.",
     "Earlier measurements and the ideas tried and not kept: `bench/history.md`, by the same section titles.",
 ]
