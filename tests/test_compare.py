@@ -425,7 +425,7 @@ def test_the_same_run_on_another_cpu_agrees_and_a_real_change_does_not(short_occ
 
 
 def test_a_share_of_differing_cells_and_the_largest_position_difference_decide():
-    """P=4, F=6: 22 cells; the default allows 5 % (1 cell) beyond 0.5 px and none beyond 10 px."""
+    """P=4, F=6: 22 cells; the default allows 5 % (1 cell) beyond 0.5 px and none beyond 50 px."""
     tracks = make_tracks()
     xy = tracks.xy.copy()
     xy[0, 1:5, 0] += 0.3  # within 0.5 px: never counted
@@ -437,10 +437,10 @@ def test_a_share_of_differing_cells_and_the_largest_position_difference_decide()
     assert not two.agree and two.differing_cells == 2
     assert compare_tracks(tracks, edited(tracks, xy=xy), with_options(TOLERANT, max_share=0.1)).agree
     xy = tracks.xy.copy()
-    xy[1, 2, 1] += 10.5
+    xy[1, 2, 1] += 50.5
     far = compare_tracks(tracks, edited(tracks, xy=xy))
     assert not far.agree and far.differing_cells == 1
-    assert compare_tracks(tracks, edited(tracks, xy=xy), with_options(TOLERANT, max_px=11.0)).agree
+    assert compare_tracks(tracks, edited(tracks, xy=xy), with_options(TOLERANT, max_px=51.0)).agree
 
 
 def test_a_moved_query_differs_even_in_a_csv(golden, tmp_path):
