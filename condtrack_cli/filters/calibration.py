@@ -265,7 +265,9 @@ class ErrorModel:
         z (n, 2), R (n, 2, 2) finite: the measurement; found (n,) bool: used (in the gate);
         xy (n, 2), sigma (n, 2, 2): the filter's estimate and covariance after the step;
         retaken (n,) bool: the reference patch was re-taken at the estimate;
-        disagreement (n, 2): the local minus the dominant motion's one-step prediction at the point (px).
+        disagreement (n, 2): the local minus the dominant motion's one-step prediction at the point (px);
+        offset_floor (n,): the least per-axis variance of a re-taken reference's offset (px^2; the module docstring's
+        W, ``ReferenceMatcher.offset_floor``), None or 0: none.
         """
         S = s_pred + R
         if found.any():
