@@ -327,7 +327,7 @@ def test_a_scheduler_that_is_not_one_or_does_not_answer_fails_fast_and_leaves_no
             f"Error: --scheduler-file {path}: not a Dask scheduler file (a JSON object with the scheduler's 'address')\n")
     started = time.monotonic()
     result = run_cli("track", *clips[:2], "--out-dir", str(out_dir), "--scheduler", "tcp://127.0.0.1:9")
-    assert time.monotonic() - started < 10
+    assert time.monotonic() - started < 45  # the old wait was 60 s; start-up alone took 14 s on a loaded 2-core machine
     assert result.returncode == 1 and result.stderr.startswith("Error: cannot reach the Dask scheduler tcp://127.0.0.1:9")
     assert result.stderr.count("\n") == 1 and not out_dir.exists()
 
