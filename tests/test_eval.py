@@ -744,3 +744,16 @@ def test_eval_refuses_detected_points_scored_by_coinciding_ids(tmp_path, suffix)
     assert result.stderr.startswith("Error: point_id 2: the prediction's query on frame 0") and result.stderr.count("\n") == 1
     result = run_cli("eval", str(queried), str(sample / "tracks.csv"), "--json")
     assert result.returncode == 0 and json.loads(result.stdout)["delta_avg"] > 0.5
+
+
+def test_bench_synthetic_checks_average_aj_and_oa_over_the_scenes_that_have_them():
+    """A scene without occluded truth (nonrigid's) has AJ and OA n/a: the means are over the other scenes, not NaN
+    (a check that could never pass)."""
+    from condtrack_cli.evaluate.bench.versus_lk import _synthetic_checks
+
+    def scene(aj: float | None) -> dict:
+        return {"auto": ({"delta_avg": 0.95, "AJ": aj, "OA": None if aj is None else 0.95}, 1.0)}
+
+    checks = _synthetic_checks({"occlusion": scene(0.80), "fast": scene(0.90), "nonrigid_0": scene(None)}, ("auto",))
+    assert checks == ["- [x] pass: auto mean <δ_avg 0.950 >= 0.88", "- [x] pass: auto mean AJ 0.850 >= 0.75 (2 scenes)",
+                      "- [x] pass: auto mean OA 0.950 >= 0.90 (2 scenes)"]

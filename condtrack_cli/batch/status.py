@@ -87,10 +87,9 @@ def batch_status(out_dir: str | Path) -> BatchStatus:
     records = read_manifest(out_dir, STATUS_FIELDS)
     if not records:
         raise MissingInput(f"{out_dir / MANIFEST}: no manifest records (not a batch's --out-dir?)")
-    latest: dict[str, dict] = {}
-    attempts = Counter(input_identity(record) for record in records)
-    for record in records:
-        latest[input_identity(record)] = record
+    identities = [input_identity(record) for record in records]
+    attempts = Counter(identities)
+    latest = dict(zip(identities, records))  # the last record of each input wins
     inputs = []
     for identity, record in latest.items():
         status, output = record["status"], str(out_dir / Path(record["output"]).name)

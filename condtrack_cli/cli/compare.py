@@ -11,6 +11,7 @@ import math
 
 import click
 
+from condtrack_cli.cli.options import FiniteFloatRange
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io.formats import is_hdf5
 from condtrack_cli.io.compare import (
@@ -101,33 +102,18 @@ def report_json(result: Comparison, path_a: str, path_b: str) -> dict:
     }
 
 
-class FiniteFloat(click.ParamType):
-    """A finite float >= 0 (nan would make every comparison pass; inf is no tolerance, say so by a large number)."""
-
-    name = "float"
-
-    def convert(self, value, param, ctx) -> float:
-        try:
-            number = float(value)
-        except (TypeError, ValueError):
-            self.fail(f"{value!r} is not a number", param, ctx)
-        if not math.isfinite(number) or number < 0:
-            self.fail(f"{value!r} is not a finite number >= 0", param, ctx)
-        return number
-
-
 @click.argument("path_a", metavar="A")
 @click.argument("path_b", metavar="B")
-@click.option("--atol-px", type=FiniteFloat(), default=None,
+@click.option("--atol-px", type=FiniteFloatRange(min=0), default=None,
               help=f"A cell differs where its positions are farther apart (px) [default: {TOLERANT.atol_px:g}; "
                    f"--strict {STRICT.atol_px:g}].")
-@click.option("--rtol-cov", type=FiniteFloat(), default=None,
+@click.option("--rtol-cov", type=FiniteFloatRange(min=0), default=None,
               help="A cell differs where its covariances differ by more, relative to the matrices (Frobenius norm), "
                    f"or its dof relative to the larger [default: {TOLERANT.rtol_cov:g}; --strict {STRICT.rtol_cov:g}].")
-@click.option("--max-share", type=FiniteFloat(), default=None, metavar="PERCENT",
+@click.option("--max-share", type=FiniteFloatRange(min=0), default=None, metavar="PERCENT",
               help=f"Percent of the compared cells allowed to differ [default: {TOLERANT.max_share * 100:g}; "
                    "--strict 0].")
-@click.option("--max-px", type=FiniteFloat(), default=None,
+@click.option("--max-px", type=FiniteFloatRange(min=0), default=None,
               help=f"No position may differ by more (px) [default: {TOLERANT.max_px:g}].")
 @click.option("--ignore-visible-flips", "visible_flips", type=click.IntRange(min=0), default=None, metavar="N",
               help="Visibility flips allowed beyond near-ties (--strict: beyond none) [default: 0].")

@@ -301,5 +301,5 @@ class ErrorModel:
         self._report(index, scaled, self.drift[index], coast)
         self.walk[index[retaken]] += lam * sigma[retaken]  # the new reference's offset, from the next frame on
         if offset_floor is not None:  # a re-take its first patch no longer confirms: W at least that floor per axis
-            diagonal = self.walk[index][:, [0, 1], [0, 1]]
-            self.walk[index, [[0], [1]], [[0], [1]]] += np.maximum(offset_floor[:, None] - diagonal, 0.0).T
+            lift = np.maximum(offset_floor[:, None] - np.diagonal(self.walk[index], axis1=1, axis2=2), 0.0)  # (n, 2)
+            self.walk[index] += lift[:, :, None] * np.eye(2)

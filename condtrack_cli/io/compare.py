@@ -157,20 +157,17 @@ def _distance(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return np.hypot(a[..., 0] - b[..., 0], a[..., 1] - b[..., 1])
 
 
+def _relative(a: np.ndarray, b: np.ndarray, size=np.abs) -> np.ndarray:
+    """size(a - b) / max(size(a), size(b)) (0 for two zeros; nan if not finite); ``size`` |.| by default."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        norm = np.maximum(size(a), size(b))
+        diff = size(a - b)
+        return np.where(diff == 0, 0.0, diff / np.where(norm > 0, norm, 1.0))
+
+
 def _relative_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """(P, F) ||a - b||_F / max(||a||_F, ||b||_F) of (P, F, 2, 2) matrices (0 for two zeros; nan if not finite)."""
-    with np.errstate(invalid="ignore", over="ignore"):
-        norm = np.maximum(np.linalg.norm(a, axis=(-2, -1)), np.linalg.norm(b, axis=(-2, -1)))
-        diff = np.linalg.norm(a - b, axis=(-2, -1))
-        return np.where(diff == 0, 0.0, diff / np.where(norm > 0, norm, 1.0))
-
-
-def _relative(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """|a - b| / max(|a|, |b|) (0 for two zeros; nan if not finite)."""
-    with np.errstate(invalid="ignore", over="ignore"):
-        norm = np.maximum(np.abs(a), np.abs(b))
-        diff = np.abs(a - b)
-        return np.where(diff == 0, 0.0, diff / np.where(norm > 0, norm, 1.0))
+    return _relative(a, b, lambda m: np.linalg.norm(m, axis=(-2, -1)))
 
 
 def _padded(array: np.ndarray, rows: np.ndarray, n_frames: int, fill) -> np.ndarray:

@@ -306,13 +306,25 @@ def synthetic_versus_lk_table(work: Path, extra: tuple[str, ...] = (), paper: tu
         print(lines[-1], file=sys.stderr)
     if not per_scene:
         return [f"no synthetic scene matches {','.join(sets or ())}: no synthetic table."]
+    checks = _synthetic_checks(per_scene, columns)
+    return lines + ["", "Done-when checks of issue 11 (synthetic scenes; those whose columns ran):", ""] + checks + [
+        "", "Coverage of each row's predictive distribution on the same runs (issues 12 and 27; `condtrack eval` keys):", ""
+    ] + coverage_table(per_scene, "scene", paper) + [""] + group_tables(per_scene, points, (("synthetic", "*"),))
+
+
+def _synthetic_checks(per_scene: dict, columns: tuple[str, ...]) -> list[str]:
+    """Issue 11's checks on the synthetic scenes, each where its columns ran: auto's mean <δ_avg, AJ and OA (AJ and
+    OA over the scenes that have them: n/a where the truth has no occluded row, as nonrigid's), auto >= LK per
+    scene, auto within 0.01 of the better filter."""
     checks = []
     if "auto" in columns:
-        means = {key: float(np.mean([_value(r, "auto", key) for r in per_scene.values()])) for key in ("delta_avg", "AJ", "OA")}
+        values = {key: [v for v in (_value(r, "auto", key) for r in per_scene.values()) if not np.isnan(v)]
+                  for key in ("delta_avg", "AJ", "OA")}
+        means = {key: float(np.mean(v)) if v else np.nan for key, v in values.items()}
         checks += [
             _check(means["delta_avg"] >= 0.88, f"auto mean <δ_avg {means['delta_avg']:.3f} >= 0.88"),
-            _check(means["AJ"] >= 0.75, f"auto mean AJ {means['AJ']:.3f} >= 0.75"),
-            _check(means["OA"] >= 0.90, f"auto mean OA {means['OA']:.3f} >= 0.90"),
+            _check(means["AJ"] >= 0.75, f"auto mean AJ {means['AJ']:.3f} >= 0.75 ({len(values['AJ'])} scenes)"),
+            _check(means["OA"] >= 0.90, f"auto mean OA {means['OA']:.3f} >= 0.90 ({len(values['OA'])} scenes)"),
         ]
         if "lk" in columns:
             for scene, results in per_scene.items():
@@ -320,9 +332,7 @@ def synthetic_versus_lk_table(work: Path, extra: tuple[str, ...] = (), paper: tu
                 checks.append(_check(auto >= lk, f"{scene}: auto {auto:.3f} >= LK {lk:.3f}"))
     if all(c in columns for c in ("auto", "clf", "cnlf")):
         checks += _better_filter_checks(per_scene)
-    return lines + ["", "Done-when checks of issue 11 (synthetic scenes; those whose columns ran):", ""] + checks + [
-        "", "Coverage of each row's predictive distribution on the same runs (issues 12 and 27; `condtrack eval` keys):", ""
-    ] + coverage_table(per_scene, "scene", paper) + [""] + group_tables(per_scene, points, (("synthetic", "*"),))
+    return checks
 
 
 def versus_lk_section(work: Path, shared: Path = REPO.parent / "shared" / "data", extra: tuple[str, ...] = (),
