@@ -16,6 +16,7 @@ from condtrack_cli.motion.dense import (
     window_spread,
 )
 from condtrack_cli.motion.model import displacement
+from condtrack_cli.motion.state_noise import StateNoise
 from condtrack_cli.types import Frame
 
 
@@ -81,14 +82,26 @@ def test_state_noise_grows_where_the_field_is_inconsistent(crop):
     prev[80:180, 100:200] = patch
     cur[80:180, 104:204] = patch
     _, field = motion_of(prev, cur)
-    q_floor = DisMotionSettings().q_floor
-    excess = lambda xy: np.trace(field.noise(np.asarray(xy, np.float64)), axis1=1, axis2=2) - 2 * q_floor  # noqa: E731
+    floor = DisMotionSettings().local_q_floor
+    excess = lambda xy: np.trace(field.noise(np.asarray(xy, np.float64)), axis1=1, axis2=2) - 2 * floor  # noqa: E731
     inside = excess([[150.0, 130.0], [130.0, 110.0]])
     background = excess([[40.0, 40.0], [280.0, 220.0]])
     outline = excess([[200.0, 130.0], [202.0, 150.0]])  # the square's right edge
     assert np.all(inside < 0.05) and np.all(background < 0.05)
     assert np.all(outline > 1.0)
-    assert np.all(np.linalg.eigvalsh(field.noise(np.array([[200.0, 130.0]]))) >= q_floor - 1e-9)
+    assert np.all(np.linalg.eigvalsh(field.noise(np.array([[200.0, 130.0]]))) >= floor - 1e-9)
+
+
+def test_the_local_field_and_the_dominant_motion_have_their_own_floors(crop):
+    """``local_q_floor`` is the local field's floor, ``q_floor`` the dominant motion's (issue 45): inside a uniform
+    2 px shift the local Q_k is its floor within 0.01 px^2 on each axis, and the state noise of the fit is at
+    least ``q_floor``."""
+    settings = DisMotionSettings(q_floor=0.2, local_q_floor=0.03)
+    fit, field = motion_of(crop, warped(crop, np.float64([[1, 0, 2], [0, 1, 0]])), settings)
+    xy = interior_grid(crop.shape)
+    local = np.linalg.eigvalsh(field.noise(xy))
+    assert np.all(local >= 0.03 - 1e-9) and np.median(local) < 0.04
+    assert np.all(np.linalg.eigvalsh(StateNoise.of(settings).at(fit, xy)) >= 0.2 - 1e-9)
 
 
 def test_the_spread_with_reused_working_arrays_is_the_fresh_one():

@@ -12,7 +12,7 @@ refinement) and reads everything the filters need off it:
 - Local motion (eq. 5): U(x) = u(x), bilinear between pixels. DIS's patches
   (``patch_size`` px of level ``finest_scale``, i.e. 2^finest_scale times that
   many full-resolution px) play the part of the paper's 32 x 32 window.
-- Q_k(x) of the local motion (the paper leaves Q_k open): q_floor I plus the
+- Q_k(x) of the local motion (the paper leaves Q_k open): local_q_floor I plus the
   covariance of the field over the ``local_window`` square around x,
   Cov_W(u) = mean_W(u u^T) - mean_W(u) mean_W(u)^T. Inside one motion it is the
   spread that the motion's own gradient puts on the window (a few 0.001 px^2);
@@ -150,7 +150,10 @@ class DisMotionSettings(StageSettings):
     global_samples: int = Field(
         4000, ge=100, description="most field vectors in the global fit (a regular sample of the frame)"
     )
-    q_floor: float = Field(0.05, gt=0, description="floor added to the state noise Q_k (px^2)")
+    q_floor: float = Field(0.05, gt=0, description="floor added to the state noise Q_k of the dominant motion (px^2)")
+    local_q_floor: float = Field(
+        0.01, gt=0, description="floor added to the local motion's Q_k, the field's spread over local_window (px^2)"
+    )
     q_misfit: float = Field(
         100.0, ge=0, description="variance added to Q_k where the neighbourhood rejects the dominant motion (px^2)"
     )
@@ -388,13 +391,14 @@ class DisLocalMotion:
         self._scratch: SpreadScratch | None = None  # window_spread's, for the last frame shape
 
     def field(self, prev: Frame, cur: Frame, fit: MotionFit) -> LocalField:
-        """U(x) = u(x) and Q_k(x) = q_floor I + Cov_W(u)(x) from ``prev`` to ``cur``, a node per pixel (``fit`` unused)."""
+        """U(x) = u(x) and Q_k(x) = local_q_floor I + Cov_W(u)(x) from ``prev`` to ``cur``, a node per pixel (``fit``
+        unused)."""
         flow = self.flow.between(prev, cur)
         if self._scratch is None or self._scratch[2].shape[:2] != flow.shape[:2]:
             self._scratch = spread_scratch(flow.shape[:2])
         spread = window_spread(flow, self.settings.local_window, self._scratch)
         spread.flags.writeable = False
-        return LocalField(flow, spread, 0.0, 1.0, self.settings.q_floor)
+        return LocalField(flow, spread, 0.0, 1.0, self.settings.local_q_floor)
 
 
 def make_dis_motion(settings: DisMotionSettings, **_context) -> MotionStages:
