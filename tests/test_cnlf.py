@@ -235,7 +235,8 @@ def test_cnlf_fixed_lag_path_estimate_is_the_paper_s_on_the_clip_cut_lag_frames_
 def test_layer_jump_keeps_covered_points_off_their_occluder():
     """Occlusion sample, CNLF alone: with ``layer_jump`` a covered background point is moved by its layer's
     motion, not the band's. Measured: covered background rows within 4 px of the truth 0.74 with
-    layer_jump 2 against 0.08 without (the default, the paper's local motion); <δ_avg 0.965 against 0.810."""
+    layer_jump 2 against 0.08 without (the default, the paper's local motion); <δ_avg 0.993 against 0.904 (0.810
+    before the re-acquisition of lost points, ``reference.py``, found the points the band let go)."""
     source, queries, truth = sample_inputs("occlusion")
     labels = np.loadtxt(SAMPLES / "occlusion" / "labels.csv", delimiter=",", skiprows=1, dtype=int)
     background = np.isin(queries.point_id, labels[labels[:, 1] == 0, 0])
@@ -252,7 +253,22 @@ def test_layer_jump_keeps_covered_points_off_their_occluder():
         close[jump] = (np.linalg.norm(tracks.xy - data.gt_xy, axis=-1)[covered] < 4).mean()
         delta[jump] = result["delta_avg"]
     assert close[2.0] >= 0.7 and close[None] <= 0.15
-    assert delta[2.0] >= delta[None] + 0.1
+    assert delta[2.0] >= delta[None] + 0.05
+
+
+def test_lost_points_are_found_again_once_the_band_has_passed(monkeypatch):
+    """Occlusion sample, CNLF alone (the band carries the covered points' local motion away): the re-acquisition
+    of points lost for 1 to ``REACQUIRE_FRAMES`` frames (``reference.py``) finds them around where they were last
+    seen once the band has passed. Measured: <δ_avg 0.904 with it against 0.811 without, OA 0.907 / 0.828."""
+    from condtrack_cli.filters import reference
+
+    source, queries, truth = sample_inputs("occlusion")
+    config = load_config(None, method="cnlf")
+    scores = [score_tracks(pipeline.run(source, source.info, config, queries, seed=3), truth)[0]]
+    monkeypatch.setattr(reference, "REACQUIRE_FRAMES", 0)
+    scores.append(score_tracks(pipeline.run(source, source.info, config, queries, seed=3), truth)[0])
+    assert scores[0]["delta_avg"] >= 0.88 and scores[1]["delta_avg"] <= 0.83
+    assert scores[0]["OA"] >= scores[1]["OA"] + 0.03
 
 
 class _ConstantField:

@@ -13,10 +13,19 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from condtrack_cli.filters.reference import HalfFrame, ReferenceMatcher, coarse_centres, lk_centres
+from condtrack_cli.filters.reference import (
+    COARSE_SIDE,
+    REACQUIRE_FRAMES,
+    HalfFrame,
+    ReferenceMatcher,
+    coarse_centres,
+    coarse_search,
+    lk_centres,
+)
 from condtrack_cli.filters.settings import MeasuredFilterSettings
 from condtrack_cli.measure.response import SSDSettings
 from condtrack_cli.measure.ssd import SSDMeasure, searched
+from condtrack_cli.measure.surfaces import extract_templates
 from condtrack_cli.types import Frame
 
 from conftest import load_asset
@@ -72,6 +81,41 @@ def test_only_points_found_before_are_tried():
     np.testing.assert_array_equal(measured.valid[retry], found.valid[retry])
     assert not np.any(measured.valid[~retry] & (np.linalg.norm(measured.z[~retry] - (xy[~retry] + JUMP), axis=1) < 2.0))
     assert np.all(measured.shift[~retry] == 0)
+
+
+def test_a_point_lost_for_frames_is_found_again_around_where_it_was_last_seen():
+    """Re-acquisition (issue 45): the points, found on frame 0 and then lost (not found on the frames since, so not
+    retried), are predicted where they were while the frame moved by JUMP (an occluder carried the prediction
+    off, or the point moved under it). Lost for 3 frames they are searched for around where they were last found
+    and found at their true position; just found (lost for 0 frames) or lost for longer than ``REACQUIRE_FRAMES``
+    they are not."""
+    frame0, frame1, xy = _jump_frames()
+    measure = SSDMeasure(SSDSettings())
+    reference = ReferenceMatcher(measure, MeasuredFilterSettings(), len(xy), 9.21)
+    index = np.arange(len(xy))
+    reference.start(index, frame0, xy)
+    s_pred = np.repeat(np.eye(2)[None], len(xy), 0)
+    assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
+    not_retried = np.zeros(len(xy), bool)
+    found = {}
+    for lost_for in (0, 3, REACQUIRE_FRAMES + 1):
+        reference.lost_for[index] = lost_for
+        found[lost_for] = reference.measure_in_gate(index, frame1, xy, s_pred, frame0, xy, not_retried)
+        on_truth = np.linalg.norm(found[lost_for].z - (xy + JUMP), axis=1) < 0.25
+        assert np.array_equal(found[lost_for].valid & on_truth, found[lost_for].valid)  # never elsewhere
+    assert found[3].valid.mean() >= 0.8
+    np.testing.assert_allclose(found[3].shift[found[3].valid], np.broadcast_to(JUMP, xy.shape)[found[3].valid],
+                               atol=2.0)  # the coarse search's centre, to its 2 px
+    assert not found[0].valid.any() and not found[REACQUIRE_FRAMES + 1].valid.any()
+
+
+def test_the_coarse_search_finds_a_half_resolution_patch_within_its_reach():
+    """``coarse_search``: each point's patch of frame 0 at half resolution is found on frame 1 (moved by JUMP) to
+    within 2 px of the full frame, from where it was on frame 0."""
+    frame0, frame1, xy = _jump_frames()
+    half0, half1 = HalfFrame(cv2.pyrDown(frame0.image)), HalfFrame(cv2.pyrDown(frame1.image))
+    patches = extract_templates(half0.gray, xy / 2, COARSE_SIDE)
+    np.testing.assert_allclose(coarse_search(patches, half1, xy), xy + JUMP, atol=2.0)
 
 
 def test_lucas_kanade_centres_at_half_resolution_follow_the_jump():

@@ -61,6 +61,10 @@ def lk_centres(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray) -> tuple[np.nd
 
 COARSE_SIDE = 13  #: side of the coarse search's patch at half resolution (px; 26 px of the full frame)
 COARSE_REACH = 40  #: half-side of the coarse search's square at half resolution (px; 80 px of the full frame)
+#: Frames after its last match during which a lost point is searched for around where it was last found
+REACQUIRE_FRAMES = 15
+#: A lost point's match there is used only where it fits the reference within this many times its usual residual
+REACQUIRE_FIT = 2.5
 
 
 class HalfFrame:
@@ -88,11 +92,16 @@ def coarse_centres(prev: HalfFrame, cur: HalfFrame, xy: np.ndarray) -> np.ndarra
     ``COARSE_REACH`` px of its own, and the best is kept: a search that needs no prediction at all, for the points
     that neither the dynamics nor the other fallback centres find.
     """
-    half = np.asarray(xy, np.float64) / 2
-    templates = extract_templates(prev.gray, half, COARSE_SIDE)
-    centres = np.rint(half).astype(np.intp)
-    surfaces = ssd_surfaces(cur.gray, templates, centres, COARSE_REACH, "zero_mean", cur.sums)
-    row, col = np.divmod(surfaces.reshape(len(half), -1).argmin(axis=1), surfaces.shape[2])
+    return coarse_search(extract_templates(prev.gray, np.asarray(xy, np.float64) / 2, COARSE_SIDE), cur, xy)
+
+
+def coarse_search(patches: np.ndarray, cur: HalfFrame, xy: np.ndarray) -> np.ndarray:
+    """(n, 2) the best match (px of the full frame) in the half-resolution frame ``cur`` of (n, COARSE_SIDE,
+    COARSE_SIDE) half-resolution ``patches`` among the patches centred within ``COARSE_REACH`` px (half resolution)
+    of (n, 2) full-frame positions ``xy``; the zero-mean SSD."""
+    centres = np.rint(np.asarray(xy, np.float64) / 2).astype(np.intp)
+    surfaces = ssd_surfaces(cur.gray, patches, centres, COARSE_REACH, "zero_mean", cur.sums)
+    row, col = np.divmod(surfaces.reshape(len(centres), -1).argmin(axis=1), surfaces.shape[2])
     return (centres + np.stack([col, row], axis=1) - COARSE_REACH) * 2.0
 
 
@@ -159,6 +168,11 @@ class ReferenceMatcher:
         self.flat_cost = np.full(n_points, np.nan)
         #: (P, 2) each point's last step between two frames it was found on (px/frame; NaN: not found on both)
         self.step = np.full((n_points, 2), np.nan)
+        #: (P, 2) where each point was last found (px); (P,) frames since; (P, COARSE_SIDE, COARSE_SIDE) its patch
+        #: there at half resolution (the re-acquisition's, :meth:`_reacquire`)
+        self.last_seen = np.full((n_points, 2), np.nan)
+        self.lost_for = np.zeros(n_points, np.intp)
+        self.last_patch = np.zeros((n_points, COARSE_SIDE, COARSE_SIDE), np.float32)
         self._halves: list[tuple[np.ndarray, HalfFrame]] = []  #: (image, its :class:`HalfFrame`) of recent frames
 
     def start(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> None:
@@ -169,6 +183,7 @@ class ReferenceMatcher:
         self.anchors[index] = self.templates[index]
         self.usual[index] = np.nan
         self.step[index] = np.nan
+        self._remember(index, frame, xy, np.ones(len(index), bool))
 
     def _take(self, index: np.ndarray, patches: np.ndarray) -> None:
         """Points ``index`` take the (n, t, t) ``patches`` as their reference; their ``flat_cost`` with them."""
@@ -190,7 +205,9 @@ class ReferenceMatcher:
         only if its residual is below ``lk_better`` times the best one of the gate around the prediction. Where
         that match is used, the prediction is moved to that centre: ``shift`` (n, 2), the displacement the filter
         adds to its prediction (0 elsewhere). On the card scene's entry they find the card's points that the local
-        field loses; on the shared real sets they move <delta_avg by at most 0.013 (docs/departures.md).
+        field loses; on the shared real sets they move <delta_avg by at most 0.013 (docs/departures.md). With
+        ``lk_fallback``, the points lost for 1 to ``REACQUIRE_FRAMES`` frames are then searched for around where they
+        were last found (:meth:`_reacquire`).
         """
         m, r_used, valid = self._gated(index, frame, predicted, s_pred)
         s = self.settings
@@ -213,6 +230,8 @@ class ReferenceMatcher:
             if tried.size:
                 m, r_used = self._fallback(index, tried, frame, prev, x_prev, predicted, s_pred, m, r_used, valid,
                                            shown, shift)
+        if s.lk_fallback and prev is not None:
+            m, r_used = self._reacquire(index, frame, predicted, s_pred, m, r_used, valid, shown, shift)
         if s.foreign_residual is not None or s.flat_visible_residual is not None:
             fit = _fit(m)[valid]
             self.usual[index[valid]] = np.where(np.isnan(usual[valid]), fit,
@@ -250,8 +269,10 @@ class ReferenceMatcher:
 
     def _match_around(self, index: np.ndarray, tried: np.ndarray, centre: np.ndarray, frame: Frame,
                       predicted: np.ndarray, s_pred: np.ndarray, m: Measurement, r_used: np.ndarray,
-                      valid: np.ndarray, shown: np.ndarray, shift: np.ndarray) -> tuple[Measurement, np.ndarray]:
-        """:meth:`_fallback` around one (n, 2) ``centre`` per point of ``tried``; returns and updates as it does."""
+                      valid: np.ndarray, shown: np.ndarray, shift: np.ndarray,
+                      fit_bound: float | None = None) -> tuple[Measurement, np.ndarray]:
+        """:meth:`_fallback` around one (n, 2) ``centre`` per point of ``tried``; returns and updates as it does.
+        fit_bound: a match is used only where it fits the reference within this many times the usual residual."""
         ok = ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
                        self.gamma)  # else that centre's match was already in the gate
         tried, centre = tried[ok], centre[ok]
@@ -260,6 +281,8 @@ class ReferenceMatcher:
         m2, r2, valid2 = self._gated(index[tried], frame, centre, s_pred[tried])
         # and it must fit the reference clearly better than the best match around the prediction (none: NaN)
         valid2 &= ~(m2.residual >= self.settings.lk_better * m.residual[tried])
+        if fit_bound is not None:
+            valid2 &= _fit(m2) <= fit_bound * self._yardstick(index[tried])
         won = tried[valid2]
         if not won.size:
             return m, r_used
@@ -271,6 +294,29 @@ class ReferenceMatcher:
         r_used[won], valid[won], shown[won] = r2[valid2], True, True
         shift[won] = centre[valid2] - predicted[won]
         return m, r_used
+
+    def _remember(self, index: np.ndarray, frame: Frame, xy: np.ndarray, found: np.ndarray) -> None:
+        """Points ``index`` found (n,) bool on ``frame`` at (n, 2) ``xy``: where and how they were last found."""
+        self.lost_for[index] = np.where(found, 0, self.lost_for[index] + 1)
+        seen = index[found]
+        self.last_seen[seen] = xy[found]
+        self.last_patch[seen] = extract_templates(self._half(frame).gray, xy[found] / 2, COARSE_SIDE)
+
+    def _reacquire(self, index: np.ndarray, frame: Frame, predicted: np.ndarray, s_pred: np.ndarray,
+                   m: Measurement, r_used: np.ndarray, valid: np.ndarray, shown: np.ndarray,
+                   shift: np.ndarray) -> tuple[Measurement, np.ndarray]:
+        """``measure_in_gate``'s re-acquisition of the points lost for 1 to ``REACQUIRE_FRAMES`` frames and not shown:
+        their last patch at half resolution is searched within ``COARSE_REACH`` of where they were last found
+        (:func:`coarse_search`: an occluder that carried their prediction away, a head turned under a hand), and
+        its best match is a gate centre as the fallback's (:meth:`_match_around`), used only where that match fits
+        the reference within ``REACQUIRE_FIT`` times the point's usual residual; updates as :meth:`_fallback`."""
+        lost_for = self.lost_for[index]
+        lost = np.flatnonzero(~shown & (lost_for >= 1) & (lost_for <= REACQUIRE_FRAMES))
+        if not lost.size:
+            return m, r_used
+        centre = coarse_search(self.last_patch[index[lost]], self._half(frame), self.last_seen[index[lost]])
+        return self._match_around(index, lost, centre, frame, predicted, s_pred, m, r_used, valid, shown, shift,
+                                  REACQUIRE_FIT)
 
     def _half(self, frame: Frame) -> HalfFrame:
         """``frame`` at half resolution, kept for the last two frames asked (a frame is the current one, then the
@@ -325,6 +371,7 @@ class ReferenceMatcher:
         """
         s = self.settings
         self.step[index] = np.where((found_before & measured.valid)[:, None], x_post - x_prev, np.nan)
+        self._remember(index, frame, x_post, measured.valid)
         retaken = np.zeros(len(index), bool)
         self.offset_floor[index] = 0.0
         if not s.reference_update:
