@@ -367,7 +367,7 @@ class ReferenceMatcher:
         whole residual appear in one frame and fails (3); a whole occluder fails
         (1). x_prev, x_post: (n, 2); found_before: (n,) bool. Returns (n,) bool: re-taken.
         Also records each point's ``step`` x_post - x_prev where it was found on both frames (NaN elsewhere),
-        the fallback's constant-step centre.
+        the fallback's constant-step centre, and where and how it was last found (:meth:`_remember`).
         """
         s = self.settings
         self.step[index] = np.where((found_before & measured.valid)[:, None], x_post - x_prev, np.nan)
