@@ -48,14 +48,20 @@ def _jump_frames() -> tuple[Frame, Frame, np.ndarray]:
     return Frame(0, images[0]), Frame(1, images[1]), corners[inside]
 
 
-def _match(lk_fallback: bool, retry: np.ndarray | None = None, predicted_step: np.ndarray = np.zeros(2)):
-    """The points of :func:`_jump_frames` and their measurement on frame 1, predicted moved by ``predicted_step``."""
+def _started(lk_fallback: bool = True):
+    """Frames 0 and 1 and the points of :func:`_jump_frames`, a reference started on them at frame 0, their indices
+    and a unit predicted covariance (n, 2, 2)."""
     frame0, frame1, xy = _jump_frames()
-    measure = SSDMeasure(SSDSettings())
-    reference = ReferenceMatcher(measure, MeasuredFilterSettings(lk_fallback=lk_fallback), len(xy), 9.21)
+    reference = ReferenceMatcher(SSDMeasure(SSDSettings()), MeasuredFilterSettings(lk_fallback=lk_fallback), len(xy),
+                                 9.21)
     index = np.arange(len(xy))
     reference.start(index, frame0, xy)
-    s_pred = np.repeat(np.eye(2)[None], len(xy), 0)
+    return frame0, frame1, xy, reference, index, np.repeat(np.eye(2)[None], len(xy), 0)
+
+
+def _match(lk_fallback: bool, retry: np.ndarray | None = None, predicted_step: np.ndarray = np.zeros(2)):
+    """The points of :func:`_jump_frames` and their measurement on frame 1, predicted moved by ``predicted_step``."""
+    frame0, frame1, xy, reference, index, s_pred = _started(lk_fallback)
     retry = np.ones(len(xy), bool) if retry is None else retry
     return xy, reference.measure_in_gate(index, frame1, xy + predicted_step, s_pred, frame0, xy, retry)
 
@@ -89,18 +95,13 @@ def test_a_point_lost_for_frames_is_found_again_around_where_it_was_last_seen():
     off, or the point moved under it). Lost for 3 frames they are searched for around where they were last found
     and found at their true position; just found (lost for 0 frames) or lost for longer than ``REACQUIRE_FRAMES``
     they are not."""
-    frame0, frame1, xy = _jump_frames()
-    measure = SSDMeasure(SSDSettings())
-    reference = ReferenceMatcher(measure, MeasuredFilterSettings(), len(xy), 9.21)
-    index = np.arange(len(xy))
-    reference.start(index, frame0, xy)
-    s_pred = np.repeat(np.eye(2)[None], len(xy), 0)
+    frame0, frame1, xy, reference, index, s_pred = _started()
     assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
     not_retried = np.zeros(len(xy), bool)
     found = {}
     for lost_for in (0, 3, REACQUIRE_FRAMES + 1):
-        reference.lost_for[index] = lost_for
-        found[lost_for] = reference.measure_in_gate(index, frame1, xy, s_pred, frame0, xy, not_retried)
+        found[lost_for] = reference.measure_in_gate(index, frame1, xy, s_pred, frame0, xy, not_retried,
+                                                    np.full(len(xy), lost_for))
         on_truth = np.linalg.norm(found[lost_for].z - (xy + JUMP), axis=1) < 0.25
         assert np.array_equal(found[lost_for].valid & on_truth, found[lost_for].valid)  # never elsewhere
     assert found[3].valid.mean() >= 0.8

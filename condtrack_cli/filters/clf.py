@@ -186,7 +186,7 @@ class CLFTracker(MDRTracker):
             sigma_pred = np.where(local[:, None, None], sigma_local, sigma_global)
             A = np.where(local[:, None, None], A_local, A_global)
         measured = self.reference.measure_in_gate(index, frame, x_pred, sigma_pred, prev, x_prev,
-                                                  found_before & ~self.covering[index])
+                                                  found_before & ~self.covering[index], self.errors.coasted[index])
         x_pred = x_pred + measured.shift  # moved where the fallback centre's match is used (``lk_fallback``)
         if self.covering[index].any():  # a router's finding: the match lies on what covers the point
             measured = dataclasses.replace(measured, valid=measured.valid & ~self.covering[index],

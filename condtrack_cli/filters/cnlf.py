@@ -241,7 +241,8 @@ class CNLFTracker(Tracker):
             mu[covered] = x[covered] + self._layer_displacement(index[covered], x[covered], motion.global_fit)
         Q = field.noise(x)  # (n, N, 2, 2)
         gate_mean, gate_cov = mixture_moments(self.log_w[index], mu, Q)
-        measured = self.reference.measure_in_gate(index, frame, gate_mean, gate_cov, prev, x_prev, found_before)
+        measured = self.reference.measure_in_gate(index, frame, gate_mean, gate_cov, prev, x_prev, found_before,
+                                                  self.errors.coasted[index])
         mu = mu + measured.shift[:, None]  # the mixture moved where the fallback centre's match is used (``lk_fallback``)
         gate_mean = gate_mean + measured.shift
         if self.transitions is not None:  # particles drawn this frame from the previous one's: smoothable

@@ -41,7 +41,7 @@ import numpy as np
 from condtrack_cli.filters import kalman
 from condtrack_cli.measure.interface import Measurement, Measurer
 from condtrack_cli.measure.surfaces import FrameSums, extract_templates, frame_sums, ssd_surfaces
-from condtrack_cli.filters.settings import MeasuredFilterSettings
+from condtrack_cli.filters.settings import REACQUIRE_FRAMES, MeasuredFilterSettings
 from condtrack_cli.types import Frame
 
 
@@ -61,8 +61,6 @@ def lk_centres(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray) -> tuple[np.nd
 
 COARSE_SIDE = 13  #: side of the coarse search's patch at half resolution (px; 26 px of the full frame)
 COARSE_REACH = 40  #: half-side of the coarse search's square at half resolution (px; 80 px of the full frame)
-#: Frames after its last match during which a lost point is searched for around where it was last found
-REACQUIRE_FRAMES = 15
 #: A lost point's match there is used only where it fits the reference within this many times its usual residual
 REACQUIRE_FIT = 2.5
 
@@ -168,10 +166,9 @@ class ReferenceMatcher:
         self.flat_cost = np.full(n_points, np.nan)
         #: (P, 2) each point's last step between two frames it was found on (px/frame; NaN: not found on both)
         self.step = np.full((n_points, 2), np.nan)
-        #: (P, 2) where each point was last found (px); (P,) frames since; (P, COARSE_SIDE, COARSE_SIDE) its patch
-        #: there at half resolution (the re-acquisition's, :meth:`_reacquire`)
+        #: (P, 2) where each point was last found (px) and (P, COARSE_SIDE, COARSE_SIDE) its patch there at half
+        #: resolution, with ``lk_fallback`` (the re-acquisition's, :meth:`_reacquire`)
         self.last_seen = np.full((n_points, 2), np.nan)
-        self.lost_for = np.zeros(n_points, np.intp)
         self.last_patch = np.zeros((n_points, COARSE_SIDE, COARSE_SIDE), np.float32)
         self._halves: list[tuple[np.ndarray, HalfFrame]] = []  #: (image, its :class:`HalfFrame`) of recent frames
 
@@ -183,7 +180,7 @@ class ReferenceMatcher:
         self.anchors[index] = self.templates[index]
         self.usual[index] = np.nan
         self.step[index] = np.nan
-        self._remember(index, frame, xy, np.ones(len(index), bool))
+        self._remember(index, frame, xy)
 
     def _take(self, index: np.ndarray, patches: np.ndarray) -> None:
         """Points ``index`` take the (n, t, t) ``patches`` as their reference; their ``flat_cost`` with them."""
@@ -193,7 +190,7 @@ class ReferenceMatcher:
 
     def measure_in_gate(self, index: np.ndarray, frame: Frame, predicted: np.ndarray, s_pred: np.ndarray,
                         prev: Frame | None = None, x_prev: np.ndarray | None = None,
-                        retry: np.ndarray | None = None) -> GatedMeasurement:
+                        retry: np.ndarray | None = None, lost_for: np.ndarray | None = None) -> GatedMeasurement:
         """Match points ``index`` around (n, 2) ``predicted`` with predicted covariance (n, 2, 2) ``s_pred``.
 
         With ``lk_fallback`` and the previous frame ``prev``, the points of (n,) bool ``retry`` (found on ``prev``
@@ -206,7 +203,8 @@ class ReferenceMatcher:
         that match is used, the prediction is moved to that centre: ``shift`` (n, 2), the displacement the filter
         adds to its prediction (0 elsewhere). On the card scene's entry they find the card's points that the local
         field loses; on the shared real sets they move <delta_avg by at most 0.013 (docs/departures.md). With
-        ``lk_fallback``, the points lost for 1 to ``REACQUIRE_FRAMES`` frames are then searched for around where they
+        ``lk_fallback`` and (n,) ``lost_for``, the frames since each point was last found (the error model's
+        ``coasted``), the points lost for 1 to ``REACQUIRE_FRAMES`` frames are then searched for around where they
         were last found (:meth:`_reacquire`).
         """
         m, r_used, valid = self._gated(index, frame, predicted, s_pred)
@@ -230,8 +228,10 @@ class ReferenceMatcher:
             if tried.size:
                 m, r_used = self._fallback(index, tried, frame, prev, x_prev, predicted, s_pred, m, r_used, valid,
                                            shown, shift)
-        if s.lk_fallback and prev is not None:
-            m, r_used = self._reacquire(index, frame, predicted, s_pred, m, r_used, valid, shown, shift)
+        if s.lk_fallback and prev is not None and lost_for is not None:
+            lost = np.flatnonzero(~shown & (lost_for >= 1) & (lost_for <= REACQUIRE_FRAMES))
+            if lost.size:
+                m, r_used = self._reacquire(index, lost, frame, predicted, s_pred, m, r_used, valid, shown, shift)
         if s.foreign_residual is not None or s.flat_visible_residual is not None:
             fit = _fit(m)[valid]
             self.usual[index[valid]] = np.where(np.isnan(usual[valid]), fit,
@@ -295,25 +295,22 @@ class ReferenceMatcher:
         shift[won] = centre[valid2] - predicted[won]
         return m, r_used
 
-    def _remember(self, index: np.ndarray, frame: Frame, xy: np.ndarray, found: np.ndarray) -> None:
-        """Points ``index`` found (n,) bool on ``frame`` at (n, 2) ``xy``: where and how they were last found."""
-        self.lost_for[index] = np.where(found, 0, self.lost_for[index] + 1)
-        seen = index[found]
-        self.last_seen[seen] = xy[found]
-        self.last_patch[seen] = extract_templates(self._half(frame).gray, xy[found] / 2, COARSE_SIDE)
+    def _remember(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> None:
+        """With ``lk_fallback``: record that points ``index`` were last found on ``frame`` at (n, 2) ``xy``, and their
+        patch there at half resolution."""
+        if self.settings.lk_fallback:
+            self.last_seen[index] = xy
+            self.last_patch[index] = extract_templates(self._half(frame).gray, xy / 2, COARSE_SIDE)
 
-    def _reacquire(self, index: np.ndarray, frame: Frame, predicted: np.ndarray, s_pred: np.ndarray,
-                   m: Measurement, r_used: np.ndarray, valid: np.ndarray, shown: np.ndarray,
+    def _reacquire(self, index: np.ndarray, lost: np.ndarray, frame: Frame, predicted: np.ndarray,
+                   s_pred: np.ndarray, m: Measurement, r_used: np.ndarray, valid: np.ndarray, shown: np.ndarray,
                    shift: np.ndarray) -> tuple[Measurement, np.ndarray]:
-        """``measure_in_gate``'s re-acquisition of the points lost for 1 to ``REACQUIRE_FRAMES`` frames and not shown:
-        their last patch at half resolution is searched within ``COARSE_REACH`` of where they were last found
-        (:func:`coarse_search`: an occluder that carried their prediction away, a head turned under a hand), and
-        its best match is a gate centre as the fallback's (:meth:`_match_around`), used only where that match fits
-        the reference within ``REACQUIRE_FIT`` times the point's usual residual; updates as :meth:`_fallback`."""
-        lost_for = self.lost_for[index]
-        lost = np.flatnonzero(~shown & (lost_for >= 1) & (lost_for <= REACQUIRE_FRAMES))
-        if not lost.size:
-            return m, r_used
+        """``measure_in_gate``'s re-acquisition of the points ``lost`` (indices into ``index``: lost for 1 to
+        ``REACQUIRE_FRAMES`` frames, not shown): their last patch at half resolution is searched within
+        ``COARSE_REACH`` of where they were last found (:func:`coarse_search`: an occluder that carried their
+        prediction away, a head turned under a hand), and its best match is a gate centre as the fallback's
+        (:meth:`_match_around`), used only where that match fits the reference within ``REACQUIRE_FIT`` times the
+        point's usual residual; updates as :meth:`_fallback`."""
         centre = coarse_search(self.last_patch[index[lost]], self._half(frame), self.last_seen[index[lost]])
         return self._match_around(index, lost, centre, frame, predicted, s_pred, m, r_used, valid, shown, shift,
                                   REACQUIRE_FIT)
@@ -371,7 +368,7 @@ class ReferenceMatcher:
         """
         s = self.settings
         self.step[index] = np.where((found_before & measured.valid)[:, None], x_post - x_prev, np.nan)
-        self._remember(index, frame, x_post, measured.valid)
+        self._remember(index[measured.valid], frame, x_post[measured.valid])
         retaken = np.zeros(len(index), bool)
         self.offset_floor[index] = 0.0
         if not s.reference_update:

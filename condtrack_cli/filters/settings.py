@@ -9,6 +9,10 @@ from pydantic import Field
 
 from condtrack_cli.settings import StageSettings
 
+#: With ``lk_fallback``: frames after its last match during which a lost point is searched for around where it was
+#: last found (``reference.py``, ``ReferenceMatcher._reacquire``)
+REACQUIRE_FRAMES = 15
+
 
 class InitialStateSettings(StageSettings):
     """Settings of every filter that carries a covariance from the query on (MDR, CLF, CNLF)."""
@@ -43,9 +47,9 @@ class MeasuredFilterSettings(InitialStateSettings):
         True,
         description="a point found on the previous frame whose match is not used is matched again around where "
                     "pyramidal Lucas-Kanade moves it, where its last measured step carries it, then where a coarse "
-                    "search at half resolution finds its patch, with the same tests; a point lost for 1 to 15 frames "
-                    "is searched for around where it was last found (false: the gate around the prediction only, "
-                    "the paper's)",
+                    "search at half resolution finds its patch, with the same tests; a point lost for 1 to "
+                    f"{REACQUIRE_FRAMES} frames is searched for around where it was last found (false: the gate "
+                    "around the prediction only, the paper's)",
     )
     lk_better: float = Field(
         0.5, gt=0,
