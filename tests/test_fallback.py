@@ -110,6 +110,32 @@ def test_a_point_lost_for_frames_is_found_again_around_where_it_was_last_seen():
     assert not found[0].valid.any() and not found[REACQUIRE_FRAMES + 1].valid.any()
 
 
+def test_a_lost_point_whose_last_patch_is_the_occluders_is_found_again_by_its_first_patch():
+    """Re-acquisition by the first patch (issue 45): the points were dragged onto an occluder before they were lost,
+    so their reference and last patch are the occluder's (here patches of noise, which match nothing of frame 1).
+    Lost for 3 frames, they are found by their first patch at their true position, and take it back as their
+    reference; with the last patch only (the first patch replaced by the occluder's too) none is found."""
+    rng = np.random.default_rng(1)
+    for with_first_patch in (True, False):
+        frame0, frame1, xy, reference, index, s_pred = _started()
+        assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
+        occluder = rng.normal(128, 40, reference.templates.shape).astype(np.float32)
+        reference._take(index, occluder)
+        reference.last_patch[:] = rng.normal(128, 40, reference.last_patch.shape)
+        if not with_first_patch:
+            reference.anchors[:] = occluder
+            reference.anchor_half[:] = reference.last_patch
+        found = reference.measure_in_gate(index, frame1, xy, s_pred, frame0, xy, np.zeros(len(xy), bool),
+                                          np.full(len(xy), 3))
+        if not with_first_patch:
+            assert not found.valid.any()
+            continue
+        assert found.valid.mean() >= 0.8
+        np.testing.assert_allclose(found.z[found.valid], (xy + JUMP)[found.valid], atol=0.25)
+        np.testing.assert_array_equal(reference.templates[found.valid], reference.anchors[found.valid])
+        assert np.array_equal(reference.templates[~found.valid], occluder[~found.valid])
+
+
 def test_the_coarse_search_finds_a_half_resolution_patch_within_its_reach():
     """``coarse_search``: each point's patch of frame 0 at half resolution is found on frame 1 (moved by JUMP) to
     within 2 px of the full frame, from where it was on frame 0."""

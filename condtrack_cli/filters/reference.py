@@ -170,6 +170,9 @@ class ReferenceMatcher:
         #: resolution, with ``lk_fallback`` (the re-acquisition's, :meth:`_reacquire`)
         self.last_seen = np.full((n_points, 2), np.nan)
         self.last_patch = np.zeros((n_points, COARSE_SIDE, COARSE_SIDE), np.float32)
+        #: (P, COARSE_SIDE, COARSE_SIDE) each point's patch at its query at half resolution, with ``lk_fallback``
+        #: (the re-acquisition's second search, :meth:`_reacquire`)
+        self.anchor_half = np.zeros((n_points, COARSE_SIDE, COARSE_SIDE), np.float32)
         self._halves: list[tuple[np.ndarray, HalfFrame]] = []  #: (image, its :class:`HalfFrame`) of recent frames
 
     def start(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> None:
@@ -181,6 +184,8 @@ class ReferenceMatcher:
         self.usual[index] = np.nan
         self.step[index] = np.nan
         self._remember(index, frame, xy)
+        if self.settings.lk_fallback:
+            self.anchor_half[index] = self.last_patch[index]
 
     def _take(self, index: np.ndarray, patches: np.ndarray) -> None:
         """Points ``index`` take the (n, t, t) ``patches`` as their reference; their ``flat_cost`` with them."""
@@ -270,15 +275,17 @@ class ReferenceMatcher:
     def _match_around(self, index: np.ndarray, tried: np.ndarray, centre: np.ndarray, frame: Frame,
                       predicted: np.ndarray, s_pred: np.ndarray, m: Measurement, r_used: np.ndarray,
                       valid: np.ndarray, shown: np.ndarray, shift: np.ndarray,
-                      fit_bound: float | None = None) -> tuple[Measurement, np.ndarray]:
+                      fit_bound: float | None = None, anchor: bool = False) -> tuple[Measurement, np.ndarray]:
         """:meth:`_fallback` around one (n, 2) ``centre`` per point of ``tried``; returns and updates as it does.
-        fit_bound: a match is used only where it fits the reference within this many times the usual residual."""
+        fit_bound: a match is used only where it fits the reference within this many times the usual residual;
+        anchor: the reference matched is the point's first patch (``anchors``), which the points whose match is used
+        take back as their reference."""
         ok = ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
                        self.gamma)  # else that centre's match was already in the gate
         tried, centre = tried[ok], centre[ok]
         if not tried.size:
             return m, r_used
-        m2, r2, valid2 = self._gated(index[tried], frame, centre, s_pred[tried])
+        m2, r2, valid2 = self._gated(index[tried], frame, centre, s_pred[tried], anchor)
         # and it must fit the reference clearly better than the best match around the prediction (none: NaN)
         valid2 &= ~(m2.residual >= self.settings.lk_better * m.residual[tried])
         if fit_bound is not None:
@@ -286,6 +293,8 @@ class ReferenceMatcher:
         won = tried[valid2]
         if not won.size:
             return m, r_used
+        if anchor:
+            self._take(index[won], self.anchors[index[won]])
         m = Measurement(*(np.array(a, copy=True) for a in (m.z, m.R, m.residual, m.informative, _fit(m))))
         m.z[won], m.R[won] = m2.z[valid2], m2.R[valid2]
         m.residual[won], m.informative[won] = m2.residual[valid2], m2.informative[valid2]
@@ -310,10 +319,20 @@ class ReferenceMatcher:
         ``COARSE_REACH`` of where they were last found (:func:`coarse_search`: an occluder that carried their
         prediction away, a head turned under a hand), and its best match is a gate centre as the fallback's
         (:meth:`_match_around`), used only where that match fits the reference within ``REACQUIRE_FIT`` times the
-        point's usual residual; updates as :meth:`_fallback`."""
+        point's usual residual. The points that this does not find are then searched for, in the same square, by
+        their first patch (``anchor_half``), matched there with their first reference patch (``anchors``) under the
+        same bound: a point dragged onto an occluder before it was lost was last found, and its reference last
+        re-taken, on the occluder, while its first patch is still the point's. Where that match is used the point
+        takes its first patch back as its reference. Updates as :meth:`_fallback`."""
         centre = coarse_search(self.last_patch[index[lost]], self._half(frame), self.last_seen[index[lost]])
-        return self._match_around(index, lost, centre, frame, predicted, s_pred, m, r_used, valid, shown, shift,
-                                  REACQUIRE_FIT)
+        m, r_used = self._match_around(index, lost, centre, frame, predicted, s_pred, m, r_used, valid, shown, shift,
+                                       REACQUIRE_FIT)
+        left = lost[~shown[lost]]
+        if left.size:
+            centre = coarse_search(self.anchor_half[index[left]], self._half(frame), self.last_seen[index[left]])
+            m, r_used = self._match_around(index, left, centre, frame, predicted, s_pred, m, r_used, valid, shown,
+                                           shift, REACQUIRE_FIT, anchor=True)
+        return m, r_used
 
     def _half(self, frame: Frame) -> HalfFrame:
         """``frame`` at half resolution, kept for the last two frames asked (a frame is the current one, then the
@@ -326,10 +345,12 @@ class ReferenceMatcher:
         return half
 
     def _gated(self, index: np.ndarray, frame: Frame, predicted: np.ndarray,
-               s_pred: np.ndarray) -> tuple[Measurement, np.ndarray, np.ndarray]:
+               s_pred: np.ndarray, anchor: bool = False) -> tuple[Measurement, np.ndarray, np.ndarray]:
         """The measurement of points ``index`` in the gate around (n, 2) ``predicted`` (S_pred (n, 2, 2) ``s_pred``),
-        its R_used (n, 2, 2) and (n,) bool whether it is used (the gate's position test, the residual test)."""
-        m = self.measure.measure(frame.gray, self.templates[index], predicted, s_pred + self.gate_r[index], self.noise_sigma)
+        its R_used (n, 2, 2) and (n,) bool whether it is used (the gate's position test, the residual test);
+        anchor: match their first patch (``anchors``) instead of their reference."""
+        templates = self.anchors[index] if anchor else self.templates[index]
+        m = self.measure.measure(frame.gray, templates, predicted, s_pred + self.gate_r[index], self.noise_sigma)
         r_used = np.where(m.informative[:, None, None], m.R, np.eye(2))
         nu = np.where(m.informative[:, None], m.z - predicted, 0.0)
         valid = m.informative & (kalman.mahalanobis2(nu, s_pred + r_used) <= self.gamma)

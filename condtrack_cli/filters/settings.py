@@ -48,8 +48,8 @@ class MeasuredFilterSettings(InitialStateSettings):
         description="a point found on the previous frame whose match is not used is matched again around where "
                     "pyramidal Lucas-Kanade moves it, where its last measured step carries it, then where a coarse "
                     "search at half resolution finds its patch, with the same tests; a point lost for 1 to "
-                    f"{REACQUIRE_FRAMES} frames is searched for around where it was last found (false: the gate "
-                    "around the prediction only, the paper's)",
+                    f"{REACQUIRE_FRAMES} frames is searched for around where it was last found, by its last patch then "
+                    "by its first (false: the gate around the prediction only, the paper's)",
     )
     lk_better: float = Field(
         0.5, gt=0,
