@@ -280,14 +280,17 @@ class ReferenceMatcher:
         fit_bound: a match is used only where it fits the reference within this many times the usual residual;
         anchor: the reference matched is the point's first patch (``anchors``), which the points whose match is used
         take back as their reference."""
-        ok = ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
-                       self.gamma)  # else that centre's match was already in the gate
-        tried, centre = tried[ok], centre[ok]
+        if not anchor:  # else that centre's match was already in the gate (searched with the reference)
+            ok = ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
+                           self.gamma)
+            tried, centre = tried[ok], centre[ok]
         if not tried.size:
             return m, r_used
         m2, r2, valid2 = self._gated(index[tried], frame, centre, s_pred[tried], anchor)
-        # and it must fit the reference clearly better than the best match around the prediction (none: NaN)
-        valid2 &= ~(m2.residual >= self.settings.lk_better * m.residual[tried])
+        # and it must fit the reference clearly better than the best match around the prediction (none: NaN); the
+        # first patch is compared with its own fit there
+        rival = self._first_patch_cost(index[tried], frame, m.z[tried]) if anchor else m.residual[tried]
+        valid2 &= ~(m2.residual >= self.settings.lk_better * rival)
         if fit_bound is not None:
             valid2 &= _fit(m2) <= fit_bound * self._yardstick(index[tried])
         won = tried[valid2]
@@ -303,6 +306,15 @@ class ReferenceMatcher:
         r_used[won], valid[won], shown[won] = r2[valid2], True, True
         shift[won] = centre[valid2] - predicted[won]
         return m, r_used
+
+    def _first_patch_cost(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> np.ndarray:
+        """(n,) the cost of the first reference patches of points ``index`` against ``frame``'s patches at (n, 2)
+        ``xy`` (grey levels^2; NaN where ``xy`` is NaN)."""
+        cost = np.full(len(index), np.nan)
+        at = np.flatnonzero(np.isfinite(xy).all(axis=1))
+        if at.size:
+            cost[at] = self.measure.cost(self.anchors[index[at]], self.measure.templates(frame.gray, xy[at]))
+        return cost
 
     def _remember(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> None:
         """With ``lk_fallback``: record that points ``index`` were last found on ``frame`` at (n, 2) ``xy``, and their
