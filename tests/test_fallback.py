@@ -23,6 +23,7 @@ from condtrack_cli.filters.reference import (
     lk_centres,
 )
 from condtrack_cli.filters.settings import MeasuredFilterSettings
+from condtrack_cli.measure.interface import Measurement
 from condtrack_cli.measure.response import SSDSettings
 from condtrack_cli.measure.ssd import SSDMeasure, searched
 from condtrack_cli.measure.surfaces import extract_templates
@@ -134,6 +135,26 @@ def test_a_lost_point_whose_last_patch_is_the_occluders_is_found_again_by_its_fi
         np.testing.assert_allclose(found.z[found.valid], (xy + JUMP)[found.valid], atol=0.25)
         np.testing.assert_array_equal(reference.templates[found.valid], reference.anchors[found.valid])
         assert np.array_equal(reference.templates[~found.valid], occluder[~found.valid])
+
+
+def test_a_first_patch_match_is_weighed_against_the_first_patch_where_the_gate_matched():
+    """The first patch's match around the truth (frame 1 = frame 0 moved by JUMP) is used although the gate's match,
+    made with a reference re-taken on an occluder, fits that reference perfectly (residual 0 at the points' frame 0
+    positions): the first patch is compared with its own fit there, which is poor, not with the reference's. Matched
+    with the reference (a point whose reference is its first patch), the same match loses to that residual 0."""
+    frame0, frame1, xy, reference, index, s_pred = _started()
+    assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
+    n = len(xy)
+    gate = Measurement(xy.copy(), np.repeat(np.eye(2)[None], n, 0), np.zeros(n), np.ones(n, bool), np.zeros(n))
+    for anchor in (True, False):
+        valid, shown, shift = np.zeros(n, bool), np.zeros(n, bool), np.zeros((n, 2))
+        measured, _ = reference._match_around(index, np.arange(n), xy + JUMP, frame1, xy, s_pred, gate,
+                                              np.repeat(np.eye(2)[None], n, 0), valid, shown, shift, 2.5, anchor)
+        if anchor:
+            assert valid.mean() >= 0.8
+            np.testing.assert_allclose(measured.z[valid], (xy + JUMP)[valid], atol=0.25)
+        else:
+            assert not valid.any()
 
 
 def test_the_coarse_search_finds_a_half_resolution_patch_within_its_reach():
