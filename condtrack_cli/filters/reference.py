@@ -280,7 +280,7 @@ class ReferenceMatcher:
         fit_bound: a match is used only where it fits the reference within this many times the usual residual;
         anchor: the reference matched is the point's first patch (``anchors``), which the points whose match is used
         take back as their reference."""
-        if not anchor:  # else that centre's match was already in the gate (searched with the reference)
+        if not anchor:  # a centre inside the gate was searched there already, with the same patch
             ok = ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
                            self.gamma)
             tried, centre = tried[ok], centre[ok]
@@ -334,8 +334,10 @@ class ReferenceMatcher:
         point's usual residual. The points that this does not find are then searched for, in the same square, by
         their first patch (``anchor_half``), matched there with their first reference patch (``anchors``) under the
         same bound: a point dragged onto an occluder before it was lost was last found, and its reference last
-        re-taken, on the occluder, while its first patch is still the point's. Where that match is used the point
-        takes its first patch back as its reference. Updates as :meth:`_fallback`."""
+        re-taken, on the occluder, while its first patch is still the point's. That match must also fit the first
+        patch clearly better (``lk_better``) than the first patch fits where the gate's match lies (the reference,
+        re-taken on the occluder, fits the occluder well there). Where that match is used the point takes its
+        first patch back as its reference. Updates as :meth:`_fallback`."""
         centre = coarse_search(self.last_patch[index[lost]], self._half(frame), self.last_seen[index[lost]])
         m, r_used = self._match_around(index, lost, centre, frame, predicted, s_pred, m, r_used, valid, shown, shift,
                                        REACQUIRE_FIT)
