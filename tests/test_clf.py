@@ -62,7 +62,7 @@ def test_selected_dynamics_keep_the_better_motion(sample, global_at_least, local
     """select >= global + margin (ring: the disk's points need their local motion); on the occlusion
     sample select stays with global (within 0.01) while local alone loses (a covered point's window
     follows the occluder). Local alone is measured without ``lk_fallback``: the re-acquisition of lost points
-    (``reference.py``) finds most of them again once the band has passed (local 0.968 with it, 0.811 without,
+    (``reference.py``) finds most of them again once the band has passed (local 0.969 with it, 0.811 without,
     against global's 1.000)."""
     source, queries, truth = sample_inputs(sample)
 
