@@ -15,6 +15,7 @@ import numpy as np
 
 from condtrack_cli.filters.reference import (
     COARSE_SIDE,
+    REACQUIRE_FIT,
     REACQUIRE_FRAMES,
     HalfFrame,
     ReferenceMatcher,
@@ -149,7 +150,8 @@ def test_a_first_patch_match_is_weighed_against_the_first_patch_where_the_gate_m
     for anchor in (True, False):
         valid, shown, shift = np.zeros(n, bool), np.zeros(n, bool), np.zeros((n, 2))
         measured, _ = reference._match_around(index, np.arange(n), xy + JUMP, frame1, xy, s_pred, gate,
-                                              np.repeat(np.eye(2)[None], n, 0), valid, shown, shift, 2.5, anchor)
+                                              np.repeat(np.eye(2)[None], n, 0), valid, shown, shift, REACQUIRE_FIT,
+                                              anchor)
         if anchor:
             assert valid.mean() >= 0.8
             np.testing.assert_allclose(measured.z[valid], (xy + JUMP)[valid], atol=0.25)
