@@ -45,6 +45,7 @@ import numpy as np
 from condtrack_cli.filters.base import Tracker
 from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.calibration import ErrorModel
+from condtrack_cli.filters.clf import local_dynamics
 from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, matvec2, sample_gauss2
 from condtrack_cli.filters.reference import ReferenceMatcher
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise, sum_over_particles
@@ -241,6 +242,8 @@ class CNLFTracker(Tracker):
             mu[covered] = x[covered] + self._layer_displacement(index[covered], x[covered], motion.global_fit)
         Q = field.noise(x)  # (n, N, 2, 2)
         gate_mean, gate_cov = mixture_moments(self.log_w[index], mu, Q)
+        if self.settings.warp_reference:  # the neighbourhood's deformation by the local field
+            self.reference.deform(index, local_dynamics(field, x_prev)[0])
         measured = self.reference.measure_in_gate(index, frame, gate_mean, gate_cov, prev, x_prev, found_before,
                                                   self.errors.coasted[index])
         mu = mu + measured.shift[:, None]  # the mixture moved where the fallback centre's match is used (``lk_fallback``)

@@ -35,6 +35,12 @@ class MeasuredFilterSettings(InitialStateSettings):
         description="a refresh re-takes the patch where the point's first reference matches, when that match lies "
                     "within this many px of the estimate (drift correction; null: at the estimate, the paper's)",
     )
+    warp_reference: bool = Field(
+        True,
+        description="match the reference patch warped by the local field's deformation since it was taken, where "
+                    "that fits the frame at the prediction better than the patch as taken (false: as taken, the "
+                    "paper's)",
+    )
     update_abruptness: float = Field(
         0.8, gt=0, le=1, description="no refresh when more than this share of the residual appeared since the last frame"
     )
