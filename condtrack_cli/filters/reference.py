@@ -40,8 +40,13 @@ scene grows by a few per cent a frame, so that a square patch taken a few frames
 before no longer matches where the point is: on kt3dmoseg_seq005 (CLF, every
 re-take and fallback as shipped) the measurement's median error 8 frames after the
 query fell from 1.34 to 1.16 px. The field's Jacobian is noisy on a deforming face
-or animal, so each point uses the warped patch only where it fits the frame at the
-prediction better than the patch as taken (the point's own evidence); and the first
+or animal (and a prediction off the point makes any two patches fit alike), so each
+point uses the warped patch only where J moves some pixel of it by half a pixel or
+more (``WARP_REACH``) and it fits the frame at the prediction clearly better than
+the patch as taken (below half its cost, ``WARP_BETTER``): the point's own evidence.
+On the face clips and the camel that never happens (their tracks are those without
+the warp, bit for bit); with any better fit (no reach bound, no margin) the faces'
+dudek_01 fell from 0.841 to 0.818, below LK, and the camel to 0.250. And the first
 patch (``anchors``) is never warped: J since the query runs through occlusions and
 long non-rigid spells (warping it too lost 0.05-0.2 <delta_avg on dudek_03 and the
 camel).
@@ -79,6 +84,11 @@ COARSE_SIDE = 13  #: side of the coarse search's patch at half resolution (px; 2
 COARSE_REACH = 40  #: half-side of the coarse search's square at half resolution (px; 80 px of the full frame)
 #: A lost point's match there is used only where it fits the reference within this many times its usual residual
 REACQUIRE_FIT = 2.5
+#: ``warp_reference``: the warp is applied only where it moves some pixel of the patch by at least this much (px) ...
+WARP_REACH = 0.5
+#: ... and used only where its fit at the prediction is below this share of the patch as taken's (``lk_better``'s
+#: "clearly better"): a noisy field's warp, or a prediction off the point, makes the two fits alike
+WARP_BETTER = 0.5
 
 
 class HalfFrame:
@@ -231,15 +241,20 @@ class ReferenceMatcher:
 
     def _references(self, index: np.ndarray, frame: Frame, predicted: np.ndarray) -> np.ndarray:
         """(n, t, t) the patches points ``index`` are matched with: their reference, or with ``warp_reference`` the
-        reference warped by J (module docstring) where that fits ``frame``'s patch at (n, 2) ``predicted`` better."""
+        reference warped by J (module docstring) where J moves some pixel by ``WARP_REACH`` px or more and the warped
+        patch fits ``frame``'s patch at (n, 2) ``predicted`` clearly better (``WARP_BETTER``)."""
         plain = self.templates[index]
-        moved = np.flatnonzero((self.warp[index] != np.eye(2)).any(axis=(1, 2)) & np.isfinite(predicted).all(axis=1))
-        if not self.settings.warp_reference or not moved.size:
+        if not self.settings.warp_reference:
             return plain
         t, side = plain.shape[1], self.wide.shape[1]
+        inverse = np.linalg.inv(self.warp[index])  # (n, 2, 2): the warped patch's pixel v samples the reference at J^-1 v
+        reach = (t // 2) * np.abs(inverse - np.eye(2)).sum(axis=2).max(axis=1)  # the largest shift of a pixel (px)
+        moved = np.flatnonzero((reach >= WARP_REACH) & np.isfinite(predicted).all(axis=1))
+        if not moved.size:
+            return plain
         offsets = np.arange(t) - t // 2
         v = np.stack(np.meshgrid(offsets, offsets), axis=-1).astype(np.float64)  # (t, t, 2): (x, y) of each pixel
-        source = np.einsum("nij,abj->nabi", np.linalg.inv(self.warp[index[moved]]), v) + side // 2  # (m, t, t, 2)
+        source = np.einsum("nij,abj->nabi", inverse[moved], v) + side // 2  # (m, t, t, 2)
         source = np.clip(source, 0, side - 1)
         corner = np.minimum(np.floor(source).astype(np.intp), side - 2)
         fx, fy = np.moveaxis(source - corner, -1, 0)
@@ -249,7 +264,7 @@ class ReferenceMatcher:
         warped = ((wide[k, cy, cx] * (1 - fx) + wide[k, cy, cx + 1] * fx) * (1 - fy)
                   + (wide[k, cy + 1, cx] * (1 - fx) + wide[k, cy + 1, cx + 1] * fx) * fy).astype(np.float32)
         there = self.measure.templates(frame.gray, predicted[moved])
-        better = self.measure.cost(warped, there) < self.measure.cost(plain[moved], there)
+        better = self.measure.cost(warped, there) < WARP_BETTER * self.measure.cost(plain[moved], there)
         chosen = plain.copy()
         chosen[moved[better]] = warped[better]
         return chosen
