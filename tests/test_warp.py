@@ -67,7 +67,7 @@ def test_a_warped_reference_is_matched_closer_to_the_truth_of_a_zoomed_scene():
     assert np.median(warped.residual[both]) < 0.6 * np.median(plain.residual[both])
 
 
-def test_a_warp_that_fits_worse_or_moves_the_patch_less_than_half_a_pixel_is_not_used():
+def test_a_warp_that_fits_worse_or_moves_the_patch_too_little_or_too_far_is_not_used():
     # The reference told of a 30 degree turn while the scene grew: the warped patch fits worse at the prediction,
     # and each point keeps its patch as taken: the measurement is the one without the warp, bit for bit.
     _, plain = _measured(False, None)
@@ -81,6 +81,7 @@ def test_a_warp_that_fits_worse_or_moves_the_patch_less_than_half_a_pixel_is_not
     np.testing.assert_array_equal(slight.z, plain.z)
 
 
+
 def test_a_retaken_reference_starts_its_warp_again():
     frame0, frame1, xy, truth = _zoomed_frames()
     reference = ReferenceMatcher(SSDMeasure(SSDSettings()), MeasuredFilterSettings(), len(xy), 9.21)
@@ -91,3 +92,21 @@ def test_a_retaken_reference_starts_its_warp_again():
     reference.start(index[:3], frame1, truth[:3])
     np.testing.assert_array_equal(reference.warp[:3], np.eye(2)[None].repeat(3, 0))
     np.testing.assert_allclose(reference.warp[3:], ZOOM * np.eye(2)[None].repeat(len(xy) - 3, 0))
+
+
+def test_a_warp_beyond_the_wide_patch_is_not_applied():
+    # A textured 11 px square on flat grey, then a flat grey frame: a warp to a third of the size (J^-1 = 3.3) would
+    # sample mostly the grey around the square, beyond the wide patch's 5 px margin, and fit the grey frame far
+    # better than the square as taken; it is not represented by the wide patch, so the patch is matched as taken.
+    rng = np.random.default_rng(1)
+    image = np.full((80, 80), 100.0)
+    image[35:46, 35:46] = rng.uniform(0, 255, (11, 11))
+    frame0 = Frame(0, image.astype(np.uint8))
+    frame1 = Frame(1, np.full((80, 80), 100, np.uint8))
+    xy = np.array([[40.0, 40.0]])
+    for side in (0.3, 0.8):  # J^-1 3.3: a pixel moves 11.7 px, beyond the 5 px margin; 1.25: 1.25 px, within it
+        reference = ReferenceMatcher(SSDMeasure(SSDSettings()), MeasuredFilterSettings(), 1, 9.21)
+        reference.start(np.arange(1), frame0, xy)
+        reference.deform(np.arange(1), side * np.eye(2)[None])
+        chosen = reference._references(np.arange(1), frame1, xy)
+        assert np.array_equal(chosen, reference.templates[:1]) == (side == 0.3)

@@ -42,11 +42,13 @@ re-take and fallback as shipped) the measurement's median error 8 frames after t
 query fell from 1.34 to 1.16 px. The field's Jacobian is noisy on a deforming face
 or animal (and a prediction off the point makes any two patches fit alike), so each
 point uses the warped patch only where J moves some pixel of it by half a pixel or
-more (``WARP_REACH``) and it fits the frame at the prediction clearly better than
-the patch as taken (below half its cost, ``WARP_BETTER``): the point's own evidence.
-On the face clips and the camel that never happens (their tracks are those without
-the warp, bit for bit); with any better fit (no reach bound, no margin) the faces'
-dudek_01 fell from 0.841 to 0.818, below LK, and the camel to 0.250. And the first
+more (``WARP_REACH``) but no farther than the wide patch's margin (t // 2 px: J,
+accumulated while a point coasts, can grow without bound; beyond the margin the
+warped patch is the wide patch's clamped border), and it fits the frame at the
+prediction clearly better than the patch as taken (below half its cost,
+``WARP_BETTER``): the point's own evidence. With any better fit instead the faces'
+dudek_01 fell from 0.841 to 0.818, below LK, and the camel from 0.256 to 0.242
+(mean of seeds 0-4; docs/departures.md). And the first
 patch (``anchors``) is never warped: J since the query runs through occlusions and
 long non-rigid spells (warping it too lost 0.05-0.2 <delta_avg on dudek_03 and the
 camel).
@@ -241,15 +243,17 @@ class ReferenceMatcher:
 
     def _references(self, index: np.ndarray, frame: Frame, predicted: np.ndarray) -> np.ndarray:
         """(n, t, t) the patches points ``index`` are matched with: their reference, or with ``warp_reference`` the
-        reference warped by J (module docstring) where J moves some pixel by ``WARP_REACH`` px or more and the warped
-        patch fits ``frame``'s patch at (n, 2) ``predicted`` clearly better (``WARP_BETTER``)."""
+        reference warped by J (module docstring) where J moves some pixel by ``WARP_REACH`` px or more, and by no more
+        than the wide patch's margin, and the warped patch fits ``frame``'s patch at (n, 2) ``predicted`` clearly
+        better (``WARP_BETTER``)."""
         plain = self.templates[index]
         if not self.settings.warp_reference:
             return plain
         t, side = plain.shape[1], self.wide.shape[1]
         inverse = np.linalg.inv(self.warp[index])  # (n, 2, 2): the warped patch's pixel v samples the reference at J^-1 v
         reach = (t // 2) * np.abs(inverse - np.eye(2)).sum(axis=2).max(axis=1)  # the largest shift of a pixel (px)
-        moved = np.flatnonzero((reach >= WARP_REACH) & np.isfinite(predicted).all(axis=1))
+        room = (side - t) // 2  # a warp that samples beyond the wide patch is not represented: not applied
+        moved = np.flatnonzero((reach >= WARP_REACH) & (reach <= room) & np.isfinite(predicted).all(axis=1))
         if not moved.size:
             return plain
         offsets = np.arange(t) - t // 2
