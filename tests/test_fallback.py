@@ -122,7 +122,7 @@ def test_a_lost_point_whose_last_patch_is_the_occluders_is_found_again_by_its_fi
         frame0, frame1, xy, reference, index, s_pred = _started()
         assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
         occluder = rng.normal(128, 40, reference.templates.shape).astype(np.float32)
-        reference._take(index, occluder)
+        reference._take(index, occluder, np.pad(occluder, [(0, 0)] + [(occluder.shape[1] // 2,) * 2] * 2, mode="edge"))
         reference.last_patch[:] = rng.normal(128, 40, reference.last_patch.shape)
         if not with_first_patch:
             reference.anchors[:] = occluder

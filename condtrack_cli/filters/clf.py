@@ -185,9 +185,8 @@ class CLFTracker(MDRTracker):
             x_pred = np.where(local[:, None], x_local, x_global)
             sigma_pred = np.where(local[:, None, None], sigma_local, sigma_global)
             A = np.where(local[:, None, None], A_local, A_global)
-        if self.reference.settings.warp_reference:  # the neighbourhood's deformation by the local field
-            self.reference.deform(index, A_local if self.needs_local_motion else
-                                  local_dynamics(motion.local_field, x_prev)[0])
+        if self.reference.settings.warp_reference:  # the neighbourhood's deformation: the local field's, else the fit's
+            self.reference.deform(index, A_local if self.needs_local_motion else A_global)
         measured = self.reference.measure_in_gate(index, frame, x_pred, sigma_pred, prev, x_prev,
                                                   found_before & ~self.covering[index], self.errors.coasted[index])
         x_pred = x_pred + measured.shift  # moved where the fallback centre's match is used (``lk_fallback``)
