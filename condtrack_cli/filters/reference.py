@@ -38,8 +38,8 @@ matched is the reference sampled at J^-1 v (v the patch's pixel offsets) from a 
 of side 2t - 1 taken with it (room for a contraction to half). A driving camera's
 scene grows by a few per cent a frame, so that a square patch taken a few frames
 before no longer matches where the point is: on kt3dmoseg_seq005 (CLF, every
-re-take and fallback as shipped) the measurement's median error 8 frames after the
-query fell from 1.34 to 1.16 px. The field's Jacobian is noisy on a deforming face
+re-take and fallback as shipped, the warp on every point) the measurement's median
+error 8 frames after the query fell from 1.34 to 1.16 px. The field's Jacobian is noisy on a deforming face
 or animal (and a prediction off the point makes any two patches fit alike), so each
 point uses the warped patch only where J moves some pixel of it by half a pixel or
 more (``WARP_REACH``) but no farther than the wide patch's margin (t // 2 px: J,
@@ -50,8 +50,8 @@ prediction clearly better than the patch as taken (below half its cost,
 dudek_01 fell from 0.841 to 0.818, below LK, and the camel from 0.256 to 0.242
 (mean of seeds 0-4; docs/departures.md). And the first
 patch (``anchors``) is never warped: J since the query runs through occlusions and
-long non-rigid spells (warping it too lost 0.05-0.2 <delta_avg on dudek_03 and the
-camel).
+long non-rigid spells (warping it too lost 0.21 <delta_avg on dudek_03 and 0.04 on
+the camel).
 """
 
 from __future__ import annotations
@@ -221,9 +221,10 @@ class ReferenceMatcher:
         if self.settings.lk_fallback:
             self.anchor_half[index] = self.last_patch[index]
 
-    def _take(self, index: np.ndarray, patches: np.ndarray, wide: np.ndarray) -> None:
-        """Points ``index`` take the (n, t, t) ``patches`` as their reference, with (n, 2t - 1, 2t - 1) ``wide``
-        around them (``warp_reference``; any array otherwise), J reset to the identity; their ``flat_cost`` with them."""
+    def _take(self, index: np.ndarray, patches: np.ndarray, wide: np.ndarray | None) -> None:
+        """Points ``index`` take the (n, t, t) ``patches`` as their reference, with ``warp_reference`` the (n, 2t - 1,
+        2t - 1) ``wide`` patches around them and J reset to the identity (``wide`` unused without); their
+        ``flat_cost`` with them."""
         self.templates[index] = patches
         if self.settings.warp_reference:
             self.wide[index] = wide
@@ -251,7 +252,7 @@ class ReferenceMatcher:
             return plain
         t, side = plain.shape[1], self.wide.shape[1]
         inverse = np.linalg.inv(self.warp[index])  # (n, 2, 2): the warped patch's pixel v samples the reference at J^-1 v
-        reach = (t // 2) * np.abs(inverse - np.eye(2)).sum(axis=2).max(axis=1)  # the largest shift of a pixel (px)
+        reach = (t // 2) * np.abs(inverse - np.eye(2)).sum(axis=2).max(axis=1)  # a corner pixel's largest x or y shift
         room = (side - t) // 2  # a warp that samples beyond the wide patch is not represented: not applied
         moved = np.flatnonzero((reach >= WARP_REACH) & (reach <= room) & np.isfinite(predicted).all(axis=1))
         if not moved.size:
