@@ -67,7 +67,7 @@ def test_a_warped_reference_is_matched_closer_to_the_truth_of_a_zoomed_scene():
     assert np.median(warped.residual[both]) < 0.6 * np.median(plain.residual[both])
 
 
-def test_a_warp_that_fits_worse_or_moves_the_patch_too_little_or_too_far_is_not_used():
+def test_a_warp_that_fits_worse_or_moves_the_patch_less_than_half_a_pixel_is_not_used():
     # The reference told of a 30 degree turn while the scene grew: the warped patch fits worse at the prediction,
     # and each point keeps its patch as taken: the measurement is the one without the warp, bit for bit.
     _, plain = _measured(False, None)
@@ -79,7 +79,6 @@ def test_a_warp_that_fits_worse_or_moves_the_patch_too_little_or_too_far_is_not_
     np.testing.assert_array_equal(untold.z, plain.z)
     _, slight = _measured(True, 1.05 * np.eye(2))  # moves no pixel of the 11 px patch by half a pixel: not warped
     np.testing.assert_array_equal(slight.z, plain.z)
-
 
 
 def test_a_retaken_reference_starts_its_warp_again():

@@ -38,8 +38,9 @@ matched is the reference sampled at J^-1 v (v the patch's pixel offsets) from a 
 of side 2t - 1 taken with it (room for a contraction to half). A driving camera's
 scene grows by a few per cent a frame, so that a square patch taken a few frames
 before no longer matches where the point is: on kt3dmoseg_seq005 (CLF, every
-re-take and fallback as shipped, the warp on every point) the measurement's median
-error 8 frames after the query fell from 1.34 to 1.16 px. The field's Jacobian is noisy on a deforming face
+re-take and fallback as shipped, the warp on every point; a one-off diagnosis run,
+docs/departures.md) the measurement's median error 8 frames after the query fell
+from 1.34 to 1.16 px. The field's Jacobian is noisy on a deforming face
 or animal (and a prediction off the point makes any two patches fit alike), so each
 point uses the warped patch only where J moves some pixel of it by half a pixel or
 more (``WARP_REACH``) but no farther than the wide patch's margin (t // 2 px: J,

@@ -38,8 +38,8 @@ class MeasuredFilterSettings(InitialStateSettings):
     warp_reference: bool = Field(
         True,
         description="match the reference patch warped by the local field's deformation since it was taken, where "
-                    "that fits the frame at the prediction better than the patch as taken (false: as taken, the "
-                    "paper's)",
+                    "that moves some patch pixel by half a pixel or more, within the patch's margin, and fits the "
+                    "frame at the prediction clearly better than the patch as taken (false: as taken, the paper's)",
     )
     update_abruptness: float = Field(
         0.8, gt=0, le=1, description="no refresh when more than this share of the residual appeared since the last frame"
