@@ -45,7 +45,8 @@ def test_coasting_error_that_grows_linearly_is_covered_on_every_frame():
     model.start(index, tiny)  # keeps the pooled q; clears what that match added (not this test's subject)
     for t in range(1, 9):
         model.update(index, zero, tiny, zero, tiny, ~found, zero, tiny, ~found, zero)
-        assert 0.93 <= inside_95(t * w, model.reported) <= 0.97, t
+        # C itself: the reported covariance is C grown by each point's own innovations (calibration.py, "Growth")
+        assert 0.93 <= inside_95(t * w, model.reported / model.growth[:, None, None]) <= 0.97, t
 
 
 def test_a_coasting_point_gets_the_disagreement_of_the_two_motions_in_every_direction():
@@ -61,7 +62,8 @@ def test_a_coasting_point_gets_the_disagreement_of_the_two_motions_in_every_dire
     zero = np.zeros((1, 2))
     coasting = np.array([False])
     model.update(index, zero, 0.1 * unit, zero, unit, coasting, zero, 0.1 * unit, coasting, np.array([[12.0, 0.0]]))
-    np.testing.assert_allclose(model.reported[0], 72.1 * np.eye(2), atol=1e-9)  # 0.1 + 12^2 / 2 on both axes
+    # 0.1 + 12^2 / 2 on both axes, grown by the point's own innovations (none yet: the pooled lambda's; "Growth")
+    np.testing.assert_allclose(model.reported[0] / model.growth[0], 72.1 * np.eye(2), atol=1e-9)
     assert inside_95(np.array([[12.0, 0.0], [0.0, 12.0]]), np.repeat(model.reported, 2, 0)) == 1.0
 
 
@@ -95,7 +97,7 @@ def test_the_innovation_tells_a_right_match_from_a_wrong_one():
         density = np.exp(-0.5 * nu @ np.linalg.solve(F, nu)) / (2 * np.pi * np.sqrt(np.linalg.det(F)))
         wrong.append(prior / (prior + (1 - prior) * np.pi * gamma * np.sqrt(np.linalg.det(S)) * density))
         expected = 0.05 * max(lam, 1.0) * np.eye(2) + wrong[-1] * (before * np.eye(2) + np.outer(nu / 2, nu / 2))
-        np.testing.assert_allclose(model.reported[len(wrong) - 1], expected, rtol=1e-9)
+        np.testing.assert_allclose(model.reported[len(wrong) - 1] / model.growth[len(wrong) - 1], expected, rtol=1e-9)
     assert prior == pytest.approx(0.93, abs=0.01)
     assert wrong[0] < 0.4 and wrong[1] > 0.99  # prior odds 13:1 for a wrong match; on the prediction 1:2
 

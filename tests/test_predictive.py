@@ -9,7 +9,10 @@ from click.testing import CliRunner
 
 import condtrack_cli as ct
 from condtrack_cli.cli import cli
-from condtrack_cli.filters.calibration import CORE_MAX, RATIO_MIN, ErrorModel, scale_ratio, tail_dof
+from condtrack_cli.filters import calibration
+from condtrack_cli.filters.calibration import (
+    GROWTH_KNEE, GROWTH_MAX, GROWTH_POWER, RATIO_MIN, RATIO_OWN, RATIO_WALK, ErrorModel, scale_ratio, tail_dof,
+)
 from condtrack_cli.predictive import major_std
 
 from conftest import SAMPLES
@@ -35,10 +38,9 @@ def test_dof_follows_the_error_model_and_stays_above_two(clf_tracks):
     nu = tail_dof(np.array([0.25]))
     assert nu / (nu - 2) == pytest.approx(4.0)  # covariance = scale nu / (nu - 2)
     one = np.ones(1)
-    # the filter's own covariance alone: rho is the core's ratio, min(CORE_GAIN lambda_p^CORE_POWER, CORE_MAX)
-    assert scale_ratio(one, 0 * one, 0 * one, 0 * one, np.array([1e6])) == pytest.approx(CORE_MAX)
-    low, high = (scale_ratio(one, 0 * one, 0 * one, 0 * one, np.array([v])) for v in (1e-3, 1e-1))
-    assert 0 < low < high < CORE_MAX  # a point whose innovations are smaller has the tighter core
+    # the filter's own covariance alone: rho is its ratio; with an equal walk W, the two ratios weighted by trace
+    assert scale_ratio(one, 0 * one, 0 * one, 0 * one) == pytest.approx(RATIO_OWN)
+    assert scale_ratio(one, 0 * one, 0 * one, 0 * one, one) == pytest.approx((RATIO_OWN + RATIO_WALK) / 2)
     dof, has_state = clf_tracks.dof, clf_tracks.result.has_state
     assert np.isnan(dof[~has_state]).all()
     assert ((dof[has_state] >= tail_dof(RATIO_MIN) - 1e-12) & (dof[has_state] <= tail_dof(0.999) + 1e-9)).all()
@@ -46,11 +48,11 @@ def test_dof_follows_the_error_model_and_stays_above_two(clf_tracks):
     assert np.isinf(stk.dof[stk.result.has_state]).all()  # no error model: Gaussian (and no covariance)
 
 
-def test_a_points_own_innovations_set_its_core_not_its_covariance():
+def test_a_points_own_innovations_grow_its_covariance():
     """Two groups of points found on one frame with the same prediction, gate and measurement covariance: one
-    matched on its prediction (NIS 0), one with innovations as S says (NIS 2 on average). The reported covariance
-    stays max(lambda, 1) Sigma + D (lambda_p does not enter it); the first group's core is tighter (lambda_p
-    smaller), so its nu is smaller."""
+    matched on its prediction (NIS 0), one with innovations of 0.3 times what S says (NIS 0.18 on average). The
+    reported covariance is g (max(lambda, 1) Sigma + D), g = clip((lambda_p / GROWTH_KNEE)^GROWTH_POWER, 1,
+    GROWTH_MAX): 1 for the first group (lambda_p below the knee), above 1 for most of the second."""
     rng = np.random.default_rng(0)
     n = 400
     model = ErrorModel(n, 9.21)
@@ -58,16 +60,43 @@ def test_a_points_own_innovations_set_its_core_not_its_covariance():
     unit = np.repeat(np.eye(2)[None], n, 0)
     model.start(index, unit)
     zero = np.zeros((n, 2))
-    z = np.where(np.arange(n)[:, None] < n // 2, 0.0, rng.normal(0.0, np.sqrt(2.0), (n, 2)))  # S = 2 I
+    z = np.where(np.arange(n)[:, None] < n // 2, 0.0, rng.normal(0.0, 0.3 * np.sqrt(2.0), (n, 2)))  # S = 2 I
     found = np.ones(n, bool)
     model.begin_frame()
     model.update(index, zero, unit, z, unit, found, zero, 0.5 * unit, ~found, zero)
     tight, loose = slice(0, n // 2), slice(n // 2, n)
     assert model.consistency[tight].max() < model.consistency[loose].mean()
-    assert np.median(model.dof[tight]) < np.median(model.dof[loose])
+    growth = np.clip((model.consistency / GROWTH_KNEE) ** GROWTH_POWER, 1.0, GROWTH_MAX)
+    assert (growth[tight] == 1.0).all() and np.mean(growth[loose] > 1.0) > 0.5 and growth[loose].max() > 2.0
     own = max(model.scale, 1.0) * 0.5 * np.eye(2)
-    np.testing.assert_allclose(model.reported[tight], own + model.drift[tight], rtol=1e-12)
+    np.testing.assert_allclose(model.reported, growth[:, None, None] * (own + model.drift), rtol=1e-12)
     assert (model.dof > 2).all()
+
+
+def test_growth_leaves_the_query_row_and_the_student_t_ratio_alone(monkeypatch):
+    """A point matched far off its prediction on every frame (lambda_p near 0.6) has its reported covariance grown
+    about 6 times, one matched on it about 2.3 times (its lambda_p is only the pooled prior's share, 0.12); the query
+    row is never grown, and the Student-t's ratio is the same as without the growth."""
+    def run():
+        model = ErrorModel(2, 9.21)
+        index, unit, zero = np.arange(2), np.repeat(np.eye(2)[None], 2, 0), np.zeros((2, 2))
+        model.start(index, unit)
+        start = model.reported.copy()
+        z = np.array([[0.0, 0.0], [1.2, 1.2]])  # NIS 0 and 1.44 against S = 2 I
+        for _ in range(6):
+            model.begin_frame()
+            model.update(index, zero, unit, z, unit, np.ones(2, bool), zero, 0.5 * unit, np.zeros(2, bool), zero)
+        return model, start
+    grown, start = run()
+    assert grown.consistency[1] == pytest.approx(0.6, abs=0.01) and grown.consistency[0] == pytest.approx(0.12, abs=0.01)
+    assert grown.growth[1] == pytest.approx(6.0, abs=0.1) and grown.growth[0] == pytest.approx(2.3, abs=0.1)
+    growth = grown.growth
+    monkeypatch.setattr(calibration, "GROWTH_MAX", 1.0)
+    plain, plain_start = run()
+    assert (plain.growth == 1.0).all()
+    np.testing.assert_array_equal(start, plain_start)
+    np.testing.assert_allclose(grown.reported, growth[:, None, None] * plain.reported, rtol=1e-12)
+    np.testing.assert_array_equal(grown.ratio, plain.ratio)
 
 
 def test_max_std_hides_the_rows_whose_major_std_exceeds_it(clf_tracks, tmp_path):
