@@ -90,7 +90,8 @@ no longer fits) has errors far beyond them. Its innovation consistency
 lambda_p measures that on its own frames: its NIS / 2 over its found frames,
 forgotten with ``FORGET`` per frame as the pooled lambda, joined by
 ``POINT_PRIOR`` frames at the pooled lambda (``consistency``). On the shared
-real sets (``auto`` at 16693ec, rows after the query) the rows with lambda_p in
+real sets (``auto`` at 16693ec, rows after the query; a one-off diagnosis run,
+docs/departures.md) the rows with lambda_p in
 [0.3, 1) held the truth in the 95 % ellipse on 0.86 (KITTI), 0.85 (faces), 0.83
 (Oxford) and 0.78 (camel) of them, those with lambda_p below 0.1 on 0.99, 0.89,
 0.98 and 0.52 (synthetic scenes: 0.81 and 0.99). So the whole reported

@@ -33,8 +33,7 @@ all started points and all their particles at once:
   ``path_lag`` + 1 frames the estimate is the paper's, bit for bit, but on the
   query frame, which reports the query: the particles' spread there
   (``initial_std``) is the filter's device, not doubt about where the point
-  is, and their path mean put the query row 0.22 px (median; up to 1.2 px)
-  off the query on KITTI seq005.
+  is (docs/departures.md, "CNLF path estimate").
 With ``filter.smooth`` the CNLF records each frame's weights and the dynamics
 N(mu^(i), Q^(i)) that moved the particles into it, and :meth:`CNLFTracker.smooth`
 replaces the estimate by the FFBSm smoother's (``smoother.py``).
@@ -160,8 +159,6 @@ class CNLFTracker(Tracker):
         self.particles = np.full((p, n, 2), np.nan)
         self.log_w = np.full((p, n), -np.log(n))
         self.lineage_start = np.full(p, -1)  #: pass frame at which each point's particles were (re)drawn
-        #: per start at the queries, its pass frame, points (n,) and their queries (n, 2) px
-        self.starts: list[tuple[int, np.ndarray, np.ndarray]] = []
         self.particle_history: list[np.ndarray] = []  #: per kept frame, (P, N, 2) particles, NaN off the CNLF
         self.store_particles = store_particles
         #: per kept frame, the points resampled into it (m,) and the index of each of their particles' parent (m, N);
@@ -221,7 +218,6 @@ class CNLFTracker(Tracker):
     def _start(self, index: np.ndarray, frame: Frame) -> None:
         self.reference.start(index, frame, self.xy[index])
         s = self.settings
-        self.starts.append((frame.index, index.copy(), self.xy[index].copy()))
         self.adopt(index, frame.index, self.xy[index], np.repeat(s.initial_std**2 * np.eye(2)[None], index.size, 0))
         self.errors.start(index, self.cov[index], frame.gray, self.xy[index])
 
@@ -371,8 +367,8 @@ class CNLFTracker(Tracker):
         for j, mean in enumerate(estimates):
             on = np.isfinite(mean[:, 0])
             xy[on, j] = mean[on]
-        for frame_index, index, query in self.starts:  # the query frame: the query itself
-            xy[index, frame_index] = query
+        started = np.flatnonzero(self.queries.frame < xy.shape[1])  # a clip may end before a query
+        xy[started, self.queries.frame[started]] = self.queries.xy[started]  # the query frame: the query itself
         return xy
 
 
