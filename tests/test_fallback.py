@@ -168,6 +168,28 @@ def test_the_coarse_search_finds_a_half_resolution_patch_within_its_reach():
     np.testing.assert_allclose(coarse_search(patches, half1, xy), xy + JUMP, atol=2.0)
 
 
+def test_a_lost_point_predicted_outside_the_frame_is_not_searched_for(monkeypatch):
+    """Re-acquisition's skip: a lost point predicted outside the frame left it with the motion around it and is not
+    searched for; the others are searched for and found as in the test above."""
+    import condtrack_cli.filters.reference as module
+
+    searched_for = []
+    search = module.coarse_search
+    monkeypatch.setattr(module, "coarse_search",
+                        lambda patches, cur, xy: searched_for.append(len(xy)) or search(patches, cur, xy))
+    frame0, frame1, xy, reference, index, s_pred = _started()
+    assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
+    n = len(xy)
+    outside = np.arange(n) < n // 3
+    predicted = np.where(outside[:, None], [-5.0, 10.0], xy)
+    found = reference.measure_in_gate(index, frame1, predicted, s_pred, frame0, xy, np.zeros(n, bool),
+                                      np.full(n, 3))
+    assert searched_for and searched_for[0] == n - outside.sum()
+    assert not found.valid[outside].any()
+    assert found.valid[~outside].mean() >= 0.8
+    np.testing.assert_allclose(found.z[found.valid], (xy + JUMP)[found.valid], atol=0.25)
+
+
 def test_lucas_kanade_centres_at_half_resolution_follow_the_jump():
     frame0, frame1, xy = _jump_frames()
     centre, ok = lk_centres(cv2.pyrDown(frame0.image), cv2.pyrDown(frame1.image), xy)

@@ -85,6 +85,9 @@ def lk_centres(prev: np.ndarray, cur: np.ndarray, xy: np.ndarray) -> tuple[np.nd
 
 COARSE_SIDE = 13  #: side of the coarse search's patch at half resolution (px; 26 px of the full frame)
 COARSE_REACH = 40  #: half-side of the coarse search's square at half resolution (px; 80 px of the full frame)
+#: Half-side (px) of the full-resolution search around a re-acquisition's centre: that centre is its patch's best
+#: match on the half-resolution grid, within a pixel of it there (2 px of the frame) when it is the point
+REACQUIRE_REACH = 3
 #: A lost point's match there is used only where it fits the reference within this many times its usual residual
 REACQUIRE_FIT = 2.5
 #: ``warp_reference``: the warp is applied only where it moves some pixel of the patch by at least this much (px) ...
@@ -139,6 +142,12 @@ def searched(measure: Measurer, predicted: np.ndarray, gate_cov: np.ndarray, xy:
         return measure.searched(predicted, gate_cov, xy)
     with np.errstate(invalid="ignore"):
         return ~(kalman.mahalanobis2(xy - predicted, gate_cov) > gamma)
+
+
+def _square_gate(reach: float, n: int, gamma: float) -> np.ndarray:
+    """(n, 2, 2) the gate covariance whose search square has half-side ``reach`` px (``ssd._half_sizes``:
+    ceil(sqrt(gamma lambda_max)) = ``reach`` for an integer ``reach``) for a gate threshold ``gamma``."""
+    return np.repeat(np.eye(2)[None] * (reach**2 / gamma), n, axis=0)
 
 
 def _fit(m: Measurement) -> np.ndarray:
@@ -291,8 +300,10 @@ class ReferenceMatcher:
         adds to its prediction (0 elsewhere). On the card scene's entry they find the card's points that the local
         field loses; on the shared real sets they move <delta_avg by at most 0.013 (docs/departures.md). With
         ``lk_fallback`` and (n,) ``lost_for``, the frames since each point was last found (the error model's
-        ``coasted``), the points lost for 1 to ``REACQUIRE_FRAMES`` frames are then searched for around where they
-        were last found (:meth:`_reacquire`).
+        ``coasted``), the points lost for 1 to ``REACQUIRE_FRAMES`` frames and predicted inside the frame are then
+        searched for around where they were last found (:meth:`_reacquire`); a point predicted outside the frame
+        has left it with the motion around it (on KITTI seq005 and seq009 30 % and 48 % of the lost points'
+        searches were of such points).
         """
         m, r_used, valid = self._gated(index, frame, predicted, s_pred)
         s = self.settings
@@ -308,15 +319,15 @@ class ReferenceMatcher:
                 at_prediction = self.measure.templates(frame.gray, predicted[flat])
                 shown[flat] = self.measure.cost(self.templates[index[flat]], at_prediction) <= bound[flat]
         shift = np.zeros_like(predicted)
+        height, width = frame.image.shape
+        inside = (predicted >= 0).all(axis=1) & (predicted[:, 0] <= width - 1) & (predicted[:, 1] <= height - 1)
         if s.lk_fallback and prev is not None and retry is not None:
-            height, width = frame.image.shape
-            inside = (predicted >= 0).all(axis=1) & (predicted[:, 0] <= width - 1) & (predicted[:, 1] <= height - 1)
             tried = np.flatnonzero(retry & ~shown & np.isfinite(x_prev).all(axis=1) & inside)
             if tried.size:
                 m, r_used = self._fallback(index, tried, frame, prev, x_prev, predicted, s_pred, m, r_used, valid,
                                            shown, shift)
         if s.lk_fallback and prev is not None and lost_for is not None:
-            lost = np.flatnonzero(~shown & (lost_for >= 1) & (lost_for <= REACQUIRE_FRAMES))
+            lost = np.flatnonzero(~shown & (lost_for >= 1) & (lost_for <= REACQUIRE_FRAMES) & inside)
             if lost.size:
                 m, r_used = self._reacquire(index, lost, frame, predicted, s_pred, m, r_used, valid, shown, shift)
         if s.foreign_residual is not None or s.flat_visible_residual is not None:
@@ -357,18 +368,20 @@ class ReferenceMatcher:
     def _match_around(self, index: np.ndarray, tried: np.ndarray, centre: np.ndarray, frame: Frame,
                       predicted: np.ndarray, s_pred: np.ndarray, m: Measurement, r_used: np.ndarray,
                       valid: np.ndarray, shown: np.ndarray, shift: np.ndarray,
-                      fit_bound: float | None = None, anchor: bool = False) -> tuple[Measurement, np.ndarray]:
+                      fit_bound: float | None = None, anchor: bool = False,
+                      reach: int | None = None) -> tuple[Measurement, np.ndarray]:
         """:meth:`_fallback` around one (n, 2) ``centre`` per point of ``tried``; returns and updates as it does.
         fit_bound: a match is used only where it fits the reference within this many times the usual residual;
         anchor: the reference matched is the point's first patch (``anchors``), which the points whose match is used
-        take back as their reference."""
+        take back as their reference; reach: the search's half-side around ``centre`` (px; None: the gate's, as
+        around the prediction)."""
         if not anchor:  # a centre inside the gate was searched there already, with the same patch
             ok = ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
                            self.gamma)
             tried, centre = tried[ok], centre[ok]
         if not tried.size:
             return m, r_used
-        m2, r2, valid2 = self._gated(index[tried], frame, centre, s_pred[tried], anchor)
+        m2, r2, valid2 = self._gated(index[tried], frame, centre, s_pred[tried], anchor, reach)
         # and it must fit the reference clearly better than the best match around the prediction (none: NaN); the
         # first patch is compared with its own fit there
         rival = self._first_patch_cost(index[tried], frame, m.z[tried]) if anchor else m.residual[tried]
@@ -419,15 +432,20 @@ class ReferenceMatcher:
         re-taken, on the occluder, while its first patch is still the point's. That match must also fit the first
         patch clearly better (``lk_better``) than the first patch fits where the gate's match lies (the reference,
         re-taken on the occluder, fits the occluder well there). Where that match is used the point takes its
-        first patch back as its reference. Updates as :meth:`_fallback`."""
+        first patch back as its reference. Updates as :meth:`_fallback`.
+
+        The full-resolution match is made within ``REACQUIRE_REACH`` px of the search's result (where the search found
+        the point, within a pixel of it on the half-resolution grid), not in the point's gate, which grows while it
+        coasts (the search square at ``search_max`` on most lost points of KITTI seq005): the same matches at a
+        fraction of the cost (bench/history.md, "Speed since 35ed7c7")."""
         centre = coarse_search(self.last_patch[index[lost]], self._half(frame), self.last_seen[index[lost]])
         m, r_used = self._match_around(index, lost, centre, frame, predicted, s_pred, m, r_used, valid, shown, shift,
-                                       REACQUIRE_FIT)
+                                       REACQUIRE_FIT, reach=REACQUIRE_REACH)
         left = lost[~shown[lost]]
         if left.size:
             centre = coarse_search(self.anchor_half[index[left]], self._half(frame), self.last_seen[index[left]])
             m, r_used = self._match_around(index, left, centre, frame, predicted, s_pred, m, r_used, valid, shown,
-                                           shift, REACQUIRE_FIT, anchor=True)
+                                           shift, REACQUIRE_FIT, anchor=True, reach=REACQUIRE_REACH)
         return m, r_used
 
     def _half(self, frame: Frame) -> HalfFrame:
@@ -440,13 +458,15 @@ class ReferenceMatcher:
         self._halves = [self._halves[-1], (frame.image, half)] if self._halves else [(frame.image, half)]
         return half
 
-    def _gated(self, index: np.ndarray, frame: Frame, predicted: np.ndarray,
-               s_pred: np.ndarray, anchor: bool = False) -> tuple[Measurement, np.ndarray, np.ndarray]:
+    def _gated(self, index: np.ndarray, frame: Frame, predicted: np.ndarray, s_pred: np.ndarray,
+               anchor: bool = False, reach: int | None = None) -> tuple[Measurement, np.ndarray, np.ndarray]:
         """The measurement of points ``index`` in the gate around (n, 2) ``predicted`` (S_pred (n, 2, 2) ``s_pred``),
         its R_used (n, 2, 2) and (n,) bool whether it is used (the gate's position test, the residual test);
-        anchor: match their first patch (``anchors``) instead of their reference."""
+        anchor: match their first patch (``anchors``) instead of their reference; reach: search only the square of
+        this half-side (px) around ``predicted`` (None: the gate's square, sized from S_pred + R_gate)."""
         templates = self.anchors[index] if anchor else self._references(index, frame, predicted)
-        m = self.measure.measure(frame.gray, templates, predicted, s_pred + self.gate_r[index], self.noise_sigma)
+        search = s_pred + self.gate_r[index] if reach is None else _square_gate(reach, len(index), self.gamma)
+        m = self.measure.measure(frame.gray, templates, predicted, search, self.noise_sigma)
         r_used = np.where(m.informative[:, None, None], m.R, np.eye(2))
         nu = np.where(m.informative[:, None], m.z - predicted, 0.0)
         valid = m.informative & (kalman.mahalanobis2(nu, s_pred + r_used) <= self.gamma)
@@ -513,8 +533,8 @@ class ReferenceMatcher:
         reach = self.settings.drift_check
         if reach is None or not len(index):
             return xy, np.zeros(len(index), bool)
-        gate = np.repeat(np.eye(2)[None] * (reach**2 / self.gamma), len(index), axis=0)
-        m = self.measure.measure(frame.gray, self.anchors[index], xy, gate, self.noise_sigma)
+        m = self.measure.measure(frame.gray, self.anchors[index], xy, _square_gate(reach, len(index), self.gamma),
+                                 self.noise_sigma)
         with np.errstate(invalid="ignore"):
             near = m.informative & (np.linalg.norm(m.z - xy, axis=1) <= reach)
         return np.where(near[:, None], m.z, xy), near
