@@ -436,8 +436,9 @@ class ReferenceMatcher:
 
         The full-resolution match is made within ``REACQUIRE_REACH`` px of the search's result (where the search found
         the point, within a pixel of it on the half-resolution grid), not in the point's gate, which grows while it
-        coasts (the search square at ``search_max`` on most lost points of KITTI seq005): the same matches at a
-        fraction of the cost (bench/history.md, "Speed since 35ed7c7")."""
+        coasts (at ``search_max``, 33 x 33 candidates, on a third of KITTI seq005's): the matches that find a point
+        again are nearly all the same (single points of dudek_03 and the camel moved) at a fraction of the cost
+        (bench/history.md, "Speed since 35ed7c7")."""
         centre = coarse_search(self.last_patch[index[lost]], self._half(frame), self.last_seen[index[lost]])
         m, r_used = self._match_around(index, lost, centre, frame, predicted, s_pred, m, r_used, valid, shown, shift,
                                        REACQUIRE_FIT, reach=REACQUIRE_REACH)
