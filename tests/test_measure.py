@@ -15,7 +15,7 @@ from condtrack_cli.measure.interface import Measurement
 from condtrack_cli.measure.noise import estimate_noise_sigma
 from condtrack_cli.measure.response import response_covariance, unit_sum_c, within_2px
 from condtrack_cli.measure.ssd import SSDMeasure, SSDSettings, measure
-from condtrack_cli.measure.surfaces import extract_templates, matching_cost, ssd_surfaces
+from condtrack_cli.measure.surfaces import SLICED_SIDE, _windows, extract_templates, matching_cost, ssd_surfaces
 
 SIGMA = 3.0  # acquisition noise std of the synthetic surfaces (grey levels)
 M = 121  # template pixels (11 x 11)
@@ -232,6 +232,25 @@ def test_cost_surfaces_equal_the_per_pair_cost_at_every_candidate_in_the_frame(c
                     if cost == "normalised":
                         tolerance *= np.sqrt(np.var(templates[p]) / np.var(patch[0]))
                     assert got[p, i, j] == pytest.approx(want, rel=1e-7, abs=tolerance), (p, u, v)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("reach", [SLICED_SIDE // 2 - 1, SLICED_SIDE // 2, 40])
+def test_windows_read_the_frame_with_its_border_replicated_inside_across_and_beyond_the_border(reach, dtype):
+    """_windows on both sides of SLICED_SIDE (one gather; one slice per point, cv2.copyMakeBorder across the border)
+    against the clamped indices, exactly, for windows inside the frame, across each border and corner, wholly
+    outside it, and larger than the frame."""
+    rng = np.random.default_rng(3)
+    g = 2 * reach + 1
+    for height, width in ((120, 160), (g - 9, g + 3)):
+        table = rng.normal(0, 50, (height, width)).astype(dtype)
+        centres = np.column_stack([rng.integers(-g, width + g, 60), rng.integers(-g, height + g, 60)])
+        centres[:4] = [[width // 2, height // 2], [0, 0], [width - 1, height - 1], [-g, height + g]]
+        rows = np.clip(centres[:, 1, None] - reach + np.arange(g), 0, height - 1)
+        cols = np.clip(centres[:, 0, None] - reach + np.arange(g), 0, width - 1)
+        got = _windows(table, centres, reach)
+        assert got.dtype == dtype
+        np.testing.assert_array_equal(got, table[rows[:, :, None], cols[:, None, :]])
 
 
 def test_normalised_cost_surface_equals_the_per_pair_cost():

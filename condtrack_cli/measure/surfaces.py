@@ -67,14 +67,24 @@ def frame_sums(gray: np.ndarray, side: int, cost: str = "ssd") -> FrameSums:
     return FrameSums(None, None, np.maximum(spread, 0.0, out=spread), side, cost)
 
 
+#: Windows of at least this side (px) are copied one slice per point: at the coarse search's 81-93 px that is 5-9
+#: times faster than one gather of every window (most of a short frame's windows there cross its border, which the
+#: gather's clamped indices make slowest); below about this side the one gather is faster (bench/history.md,
+#: "Speed since 35ed7c7").
+SLICED_SIDE = 35
+
+
 def _windows(table: np.ndarray, centres: np.ndarray, reach: int) -> np.ndarray:
     """(P, g, g) windows of a (H, W) ``table`` around (P, 2) integer (x, y) ``centres``, g = 2 reach + 1.
 
-    Element [p, i, j] is ``table`` at (x + j - reach, y + i - reach) clamped into the frame: one
-    slice per point when the window is inside the frame, clamped indices for the others.
+    Element [p, i, j] is ``table`` at (x + j - reach, y + i - reach) clamped into the frame: for g below
+    ``SLICED_SIDE``, one slice per point when the window is inside the frame, clamped indices for the others;
+    from it, :func:`_sliced_windows`.
     """
     height, width = table.shape
     g = 2 * reach + 1
+    if g >= SLICED_SIDE:
+        return _sliced_windows(table, centres, reach)
     starts = centres - reach
     inside = (starts >= 0).all(axis=1) & (starts[:, 0] + g <= width) & (starts[:, 1] + g <= height)
     windows = np.empty((len(centres), g, g), table.dtype)
@@ -84,6 +94,28 @@ def _windows(table: np.ndarray, centres: np.ndarray, reach: int) -> np.ndarray:
         rows = np.clip(starts[~inside, 1, None] + np.arange(g), 0, height - 1)
         cols = np.clip(starts[~inside, 0, None] + np.arange(g), 0, width - 1)
         windows[~inside] = table[rows[:, :, None], cols[:, None, :]]
+    return windows
+
+
+def _sliced_windows(table: np.ndarray, centres: np.ndarray, reach: int) -> np.ndarray:
+    """:func:`_windows`, one copy per point: the window's slice where it lies inside the frame, else the slice of
+    its part inside the frame, border replicated to g x g (``cv2.copyMakeBorder``; a window wholly outside the frame
+    repeats the frame's nearest row or column, as the clamped indices do)."""
+    import cv2
+
+    height, width = table.shape
+    g = 2 * reach + 1
+    windows = np.empty((len(centres), g, g), table.dtype)
+    for window, (x, y) in zip(windows, (np.asarray(centres) - reach).tolist()):
+        if x >= 0 and y >= 0 and x + g <= width and y + g <= height:
+            window[...] = table[y:y + g, x:x + g]
+            continue
+        x_lo, x_hi = min(max(x, 0), width - 1), min(max(x + g - 1, 0), width - 1)  # the columns the window reads
+        y_lo, y_hi = min(max(y, 0), height - 1), min(max(y + g - 1, 0), height - 1)
+        left, top = max(min(x_lo - x, g - 1), 0), max(min(y_lo - y, g - 1), 0)  # repeats of the first one
+        right, bottom = g - (x_hi - x_lo + 1) - left, g - (y_hi - y_lo + 1) - top
+        window[...] = cv2.copyMakeBorder(table[y_lo:y_hi + 1, x_lo:x_hi + 1], top, bottom, left, right,
+                                         cv2.BORDER_REPLICATE)
     return windows
 
 
