@@ -15,7 +15,9 @@ from condtrack_cli.measure.interface import Measurement
 from condtrack_cli.measure.noise import estimate_noise_sigma
 from condtrack_cli.measure.response import response_covariance, unit_sum_c, within_2px
 from condtrack_cli.measure.ssd import SSDMeasure, SSDSettings, measure
-from condtrack_cli.measure.surfaces import SLICED_SIDE, _windows, extract_templates, matching_cost, ssd_surfaces
+from condtrack_cli.measure.surfaces import (
+    SLICED_SIDE, _windows, extract_templates, matching_cost, ssd_surfaces, zero_mean_minima,
+)
 
 SIGMA = 3.0  # acquisition noise std of the synthetic surfaces (grey levels)
 M = 121  # template pixels (11 x 11)
@@ -251,6 +253,28 @@ def test_windows_read_the_frame_with_its_border_replicated_inside_across_and_bey
         got = _windows(table, centres, reach)
         assert got.dtype == dtype
         np.testing.assert_array_equal(got, table[rows[:, :, None], cols[:, None, :]])
+
+
+@pytest.mark.parametrize("reach", [6, 40])
+def test_zero_mean_minima_are_the_argmins_of_the_zero_mean_surfaces(reach):
+    """zero_mean_minima, made point by point, against the argmin of ssd_surfaces' 'zero_mean' surfaces, exactly: on a
+    photograph (points inside, across the border, outside the frame) and on a frame with a flat half (equal costs:
+    the first of them)."""
+    rng = np.random.default_rng(4)
+    photo = load_asset("coffee.png").astype(np.float32)
+    flat_half = photo.copy()
+    flat_half[:, : photo.shape[1] // 2] = 90.0
+    for gray in (photo, flat_half):
+        h, w = gray.shape
+        xy = np.column_stack([rng.uniform(-20, w + 20, 40), rng.uniform(-20, h + 20, 40)])
+        xy[:3] = [[w / 4, h / 2], [2.0, 3.0], [w - 1.0, h - 2.0]]
+        templates = extract_templates(photo, np.clip(xy + rng.uniform(-3, 3, xy.shape), 0, [w - 1, h - 1]), 13)
+        centres = np.rint(xy).astype(np.intp)
+        surfaces = ssd_surfaces(gray, templates, centres, reach, "zero_mean")
+        want = surfaces.reshape(len(xy), -1).argmin(axis=1)
+        np.testing.assert_array_equal(zero_mean_minima(gray, templates, centres, reach), want)
+    ties = (surfaces.reshape(len(xy), -1) == surfaces.reshape(len(xy), -1).min(axis=1, keepdims=True)).sum(axis=1)
+    assert (ties > 1).any()  # the flat half's points: every candidate equal
 
 
 def test_normalised_cost_surface_equals_the_per_pair_cost():

@@ -64,7 +64,7 @@ import numpy as np
 
 from condtrack_cli.filters import kalman
 from condtrack_cli.measure.interface import Measurement, Measurer
-from condtrack_cli.measure.surfaces import FrameSums, extract_templates, frame_sums, ssd_surfaces
+from condtrack_cli.measure.surfaces import FrameSums, extract_templates, frame_sums, zero_mean_minima
 from condtrack_cli.filters.settings import REACQUIRE_FRAMES, MeasuredFilterSettings
 from condtrack_cli.types import Frame
 
@@ -130,8 +130,7 @@ def coarse_search(patches: np.ndarray, cur: HalfFrame, xy: np.ndarray) -> np.nda
     COARSE_SIDE) half-resolution ``patches`` among the patches centred within ``COARSE_REACH`` px (half resolution)
     of (n, 2) full-frame positions ``xy``; the zero-mean SSD."""
     centres = np.rint(np.asarray(xy, np.float64) / 2).astype(np.intp)
-    surfaces = ssd_surfaces(cur.gray, patches, centres, COARSE_REACH, "zero_mean", cur.sums)
-    row, col = np.divmod(surfaces.reshape(len(centres), -1).argmin(axis=1), surfaces.shape[2])
+    row, col = np.divmod(zero_mean_minima(cur.gray, patches, centres, COARSE_REACH, cur.sums), 2 * COARSE_REACH + 1)
     return (centres + np.stack([col, row], axis=1) - COARSE_REACH) * 2.0
 
 

@@ -143,18 +143,11 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
 
     t = templates.shape[1]
     g = 2 * reach + 1
-    if sums is None:
-        sums = frame_sums(gray, t, cost)
-    if (sums.side, sums.cost) != (t, cost):
-        raise ValueError(f"frame_sums of {sums.side} px windows for cost {sums.cost!r}: {t} px templates, cost {cost!r}")
-    tmpl = templates.astype(np.float64)
-    mean = tmpl.mean(axis=(1, 2), keepdims=True)
-    tmpl -= mean
-    energy = (tmpl * tmpl).sum(axis=(1, 2))[:, None, None]  # sum T'^2
+    sums = _checked_sums(gray, t, cost, sums)
+    mean, energy, kernels = _centred(templates)
     patches = np.empty((len(templates), g + t - 1, g + t - 1), np.float32)
     np.subtract(_windows(gray, centres, reach + t // 2), mean, out=patches,
                 casting="same_kind")  # I - m in float64, rounded to float32: small sums
-    kernels = tmpl.astype(np.float32)
     sum_it = np.empty((len(templates), g, g), np.float32)  # sum_y T'(y) (I(z + y) - m) = sum_y T'(y) I(z + y)
     for patch, kernel, out in zip(patches, kernels, sum_it):
         cv2.matchTemplate(patch, kernel, cv2.TM_CCORR, result=out)
@@ -164,14 +157,65 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
         m = mean[:, :, :1]
         return np.maximum(sum_sq - 2.0 * m * sum_i + t * t * m * m - 2.0 * sum_it + energy, 0.0)  # eq. (6)
     spread = _windows(sums.spread, centres, reach)  # sum I'^2
-    if cost == "zero_mean":  # spread - 2 sum_it + energy, in place
-        sum_it *= -2.0
-        sum_it += spread
-        sum_it += energy
-        return np.maximum(sum_it, 0.0, out=sum_it)
+    if cost == "zero_mean":
+        return _zero_mean_cost(sum_it, spread, energy)
     with np.errstate(invalid="ignore", divide="ignore"):
         rho = np.where(spread > 0, sum_it / np.sqrt(energy * spread), 0.0)
     return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
+
+
+def zero_mean_minima(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, reach: int,
+                     sums: FrameSums | None = None) -> np.ndarray:
+    """(P,) the flat index i G + j of the least element of each point's (G, G) 'zero_mean' surface of
+    :func:`ssd_surfaces` (G = 2 reach + 1; the first of equal ones): the same surfaces, the same arithmetic, made and
+    reduced one point at a time, so that no (P, G, G) array is made (at the coarse search's G = 81, about twice as
+    fast as the surfaces and their argmin; bench/history.md, "Speed since 35ed7c7")."""
+    import cv2
+
+    t = templates.shape[1]
+    g = 2 * reach + 1
+    sums = _checked_sums(gray, t, "zero_mean", sums)
+    mean, energy, kernels = _centred(templates)
+    regions = _windows(gray, centres, reach + t // 2)
+    spreads = _windows(sums.spread, centres, reach)
+    patch = np.empty((g + t - 1, g + t - 1), np.float32)
+    sum_it = np.empty((g, g), np.float32)
+    cost = np.empty((g, g))
+    minima = np.empty(len(templates), np.intp)
+    for p, (region, kernel, spread) in enumerate(zip(regions, kernels, spreads)):
+        np.subtract(region, mean[p], out=patch, casting="same_kind")
+        cv2.matchTemplate(patch, kernel, cv2.TM_CCORR, result=sum_it)
+        np.copyto(cost, sum_it)  # float64, as the surfaces' cross terms
+        minima[p] = _zero_mean_cost(cost, spread, energy[p]).argmin()
+    return minima
+
+
+def _checked_sums(gray: np.ndarray, side: int, cost: str, sums: FrameSums | None) -> FrameSums:
+    """``sums``, or :func:`frame_sums` of ``gray`` where None; ValueError where they are not of ``side`` px windows for
+    ``cost``."""
+    if sums is None:
+        sums = frame_sums(gray, side, cost)
+    if (sums.side, sums.cost) != (side, cost):
+        raise ValueError(f"frame_sums of {sums.side} px windows for cost {sums.cost!r}: {side} px templates, cost {cost!r}")
+    return sums
+
+
+def _centred(templates: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(P, t, t) ``templates``' means m (P, 1, 1) and energies sum T'^2 (P, 1, 1), float64, and the mean-free
+    T' = T - m as float32 kernels (P, t, t)."""
+    tmpl = templates.astype(np.float64)
+    mean = tmpl.mean(axis=(1, 2), keepdims=True)
+    tmpl -= mean
+    return mean, (tmpl * tmpl).sum(axis=(1, 2))[:, None, None], tmpl.astype(np.float32)
+
+
+def _zero_mean_cost(sum_it: np.ndarray, spread: np.ndarray, energy: np.ndarray) -> np.ndarray:
+    """The 'zero_mean' cost sum I'^2 - 2 sum I T' + sum T'^2, at least 0, in place of the float64 cross terms
+    ``sum_it``; ``spread`` sum I'^2 and ``energy`` sum T'^2 broadcast to it."""
+    sum_it *= -2.0
+    sum_it += spread
+    sum_it += energy
+    return np.maximum(sum_it, 0.0, out=sum_it)
 
 
 def matching_cost(templates: np.ndarray, patches: np.ndarray, cost: str) -> np.ndarray:
