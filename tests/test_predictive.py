@@ -11,7 +11,8 @@ import condtrack_cli as ct
 from condtrack_cli.cli import cli
 from condtrack_cli.filters import calibration
 from condtrack_cli.filters.calibration import (
-    GROWTH_KNEE, GROWTH_MAX, GROWTH_POWER, RATIO_MIN, RATIO_OWN, RATIO_WALK, ErrorModel, scale_ratio, tail_dof,
+    GROWTH_KNEE, GROWTH_MAX, GROWTH_POWER, RATIO_DRIFT, RATIO_MIN, RATIO_OWN, RATIO_WALK, ErrorModel, scale_ratio,
+    tail_dof,
 )
 from condtrack_cli.predictive import major_std
 
@@ -97,6 +98,32 @@ def test_growth_leaves_the_query_row_and_the_student_t_ratio_alone(monkeypatch):
     np.testing.assert_array_equal(start, plain_start)
     np.testing.assert_allclose(grown.reported, growth[:, None, None] * plain.reported, rtol=1e-12)
     np.testing.assert_array_equal(grown.ratio, plain.ratio)
+
+
+def test_a_wrong_match_term_summed_over_many_frames_has_a_wider_core():
+    """n_D = (sum c_k)^2 / sum c_k^2 of the frames' shares c_k of D: among 200 points matched at NIS 1 every frame
+    (they hold the pooled lambda steady, so a match's chance of being wrong is the same from frame to frame), a point
+    matched far off its prediction on one frame, then as the others, sums about one share; one matched as far off on
+    each of eight frames sums eight equal ones. The Student-t's ratio of D - A is RATIO_DRIFT n_D (at least RATIO_MIN
+    for the row), so the second point's core is about eight times as large a part of its D."""
+    one = np.ones(1)
+    assert scale_ratio(0 * one, 0 * one, one, 0 * one, 0.0, 8.0 * one) == pytest.approx(8 * RATIO_DRIFT)
+    assert scale_ratio(0 * one, 0 * one, one, 0 * one, 0.0, one) == pytest.approx(max(RATIO_DRIFT, RATIO_MIN))
+    n = 202
+    model = ErrorModel(n, 9.21)
+    index, unit, zero = np.arange(n), np.repeat(np.eye(2)[None], n, 0), np.zeros((n, 2))
+    model.start(index, unit)
+    assert (model.drift_shares(index) == 1.0).all()  # no share yet
+    for frame in range(8):
+        z = np.ones((n, 2))  # NIS 1 against S = 2 I
+        z[1] = 2.5  # NIS 6.25: inside the gate (9.21), likely a wrong match
+        if frame == 0:
+            z[0] = 2.5
+        model.begin_frame()
+        model.update(index, zero, unit, z, unit, np.ones(n, bool), zero, 0.5 * unit, np.zeros(n, bool), zero)
+    once, always = model.drift_shares(index[:2])
+    assert once < 1.2 and always == pytest.approx(8.0, rel=0.03)
+    assert np.trace(model.drift[1]) > 5 * np.trace(model.drift[0])
 
 
 def test_max_std_hides_the_rows_whose_major_std_exceeds_it(clf_tracks, tmp_path):

@@ -125,9 +125,17 @@ by term and weighted by each term's trace (``scale_ratio``):
 - the walk W: ``RATIO_WALK``, a sum of many re-takes' offsets, most of them
   small (chosen by hand at 0.3 before the growth, bench/history.md; fitted with
   it, a tight core in a growing second moment);
-- the rest of D (wrong matches): ``RATIO_DRIFT``, and the coasting C:
-  ``RATIO_COAST``: both are mixtures of rare large errors and many small ones
-  summarised by their second moment, so their core is a small part of it.
+- the rest of D (wrong matches): ``RATIO_DRIFT`` times n_D, and the coasting
+  C: ``RATIO_COAST``: both are mixtures of rare large errors and many small
+  ones summarised by their second moment, so their core is a small part of it.
+  D is a sum over the frames of each frame's share of a wrong match; n_D =
+  (sum c_k)^2 / sum c_k^2 (c_k the trace of frame k's share, n_D 1 before the
+  first) is the number of comparable shares it sums: one frame's wrong match is
+  a rare large error, a point whose matches are doubtful frame after frame (an
+  animal's joint whose skin slides) sums many, and a sum of n independent rare
+  errors has n times their chance of having occurred: its core is about n times
+  as large a part of it (first order, the ratio's own scale; issue 45, "A lost
+  point must know it": bench/history.md, "The wrong-match term's core").
 
 rho is kept in [``RATIO_MIN``, 0.999]. The ratios and the growth were fitted
 together (issue 45; a one-off random search over per-row terms of the runs of
@@ -181,12 +189,14 @@ POINT_PRIOR = 1.0
 
 
 def scale_ratio(own: np.ndarray, aperture: np.ndarray, drift: np.ndarray, coast: np.ndarray,
-                walk: np.ndarray | float = 0.0) -> np.ndarray:
+                walk: np.ndarray | float = 0.0, drift_shares: np.ndarray | float = 1.0) -> np.ndarray:
     """(n,) rho = tr(Student-t scale) / tr(covariance) of rows whose reported covariance is the sum of the traces
     ``own`` (the filter's, lambda-scaled), ``aperture`` (A), ``drift`` (D - A), ``coast`` (C) and ``walk`` (W), all
-    (n,) px^2 (``walk`` 0: none), times any growth (which leaves rho alone); in (0, 1)."""
+    (n,) px^2 (``walk`` 0: none), times any growth (which leaves rho alone); ``drift_shares`` (n,) n_D >= 1, the
+    number of comparable frame shares D - A sums (module docstring, "Student-t"); in (0, 1)."""
     total = own + aperture + drift + coast + walk
-    scale = RATIO_OWN * own + RATIO_APERTURE * aperture + RATIO_DRIFT * drift + RATIO_COAST * coast + RATIO_WALK * walk
+    scale = (RATIO_OWN * own + RATIO_APERTURE * aperture + RATIO_DRIFT * drift_shares * drift + RATIO_COAST * coast
+             + RATIO_WALK * walk)
     return np.clip(scale / np.where(total > 0, total, np.inf), RATIO_MIN, 0.999)
 
 
@@ -203,6 +213,8 @@ class ErrorModel:
         self.gamma = gamma  #: the gate's chi-square threshold
         self.aperture = aperture
         self.drift = np.zeros((n_points, 2, 2))  #: D, px^2
+        #: (P, 2) sum c_k and sum c_k^2 of the traces c_k of the frames' shares of D - A (px^2, px^4): n_D's sums
+        self.drift_share_sums = np.zeros((n_points, 2))
         self.walk = np.zeros((n_points, 2, 2))  #: W, px^2
         self.coasted = np.zeros(n_points)  #: t, frames since the point was last found
         self.detour = np.zeros((n_points, 2))  #: sum over the frames coasted of the dynamics' disagreement, px
@@ -242,6 +254,7 @@ class ErrorModel:
         not coasting, D their aperture offset (0 where they pass the trackability test, or without ``gray``)."""
         offset = self.aperture.offset(gray, xy, sigma) if self.aperture is not None and gray is not None else 0.0
         self.drift[index] = offset
+        self.drift_share_sums[index] = 0.0
         self.walk[index] = 0.0
         self.aperture_offset[index] = offset
         self._point_nis[index] = 0.0
@@ -261,7 +274,14 @@ class ErrorModel:
         own, drift, coast, offset, walk = (np.trace(m, axis1=1, axis2=2)
                                      for m in (own, drift, coast, self.aperture_offset[index], walk))
         aperture = np.minimum(offset, drift)
-        self.ratio[index] = scale_ratio(own, aperture, drift - aperture, coast, walk)
+        self.ratio[index] = scale_ratio(own, aperture, drift - aperture, coast, walk, self.drift_shares(index))
+
+    def drift_shares(self, index: np.ndarray) -> np.ndarray:
+        """(n,) n_D = (sum c_k)^2 / sum c_k^2 >= 1 of points ``index``: how many comparable frame shares c_k their
+        D - A sums (module docstring, "Student-t"); 1 before the first share."""
+        total, squares = self.drift_share_sums[index].T
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(squares > 0, np.maximum(total * total / squares, 1.0), 1.0)
 
     @property
     def dof(self) -> np.ndarray:
@@ -318,7 +338,10 @@ class ErrorModel:
         log_odds = log_prior - np.log(np.maximum(-np.expm1(log_prior), 1e-300))
         wrong = np.where(found, expit(log_odds - right), 0.0)
         step = xy - predicted
-        self.drift[index] += wrong[:, None, None] * (before + np.einsum("ni,nj->nij", step, step))
+        share = wrong[:, None, None] * (before + np.einsum("ni,nj->nij", step, step))
+        self.drift[index] += share
+        traces = np.trace(share, axis1=1, axis2=2)
+        self.drift_share_sums[index] += np.column_stack([traces, traces * traces])
         scaled = max(lam, 1.0) * sigma
         self.coasted[index] = np.where(found, 0, self.coasted[index] + 1)
         self.detour[index] = np.where(found[:, None], 0.0, self.detour[index] + disagreement)
