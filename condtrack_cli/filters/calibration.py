@@ -134,8 +134,8 @@ by term and weighted by each term's trace (``scale_ratio``):
   a rare large error, a point whose matches are doubtful frame after frame (an
   animal's joint whose skin slides) sums many, and a sum of n independent rare
   errors has n times their chance of having occurred: its core is about n times
-  as large a part of it (first order, the ratio's own scale; issue 45, "A lost
-  point must know it": bench/history.md, "The wrong-match term's core").
+  as large a part of it (to first order; issue 45: docs/departures.md, "The
+  wrong-match term's core").
 
 rho is kept in [``RATIO_MIN``, 0.999]. The ratios and the growth were fitted
 together (issue 45; a one-off random search over per-row terms of the runs of
