@@ -67,10 +67,10 @@ def frame_sums(gray: np.ndarray, side: int, cost: str = "ssd") -> FrameSums:
     return FrameSums(None, None, np.maximum(spread, 0.0, out=spread), side, cost)
 
 
-#: Windows of at least this side (px) are copied one slice per point: at the coarse search's 81-93 px that is 5-9
-#: times faster than one gather of every window (most of a short frame's windows there cross its border, which the
-#: gather's clamped indices make slowest); below about this side the one gather is faster (bench/history.md,
-#: "Speed since 35ed7c7").
+#: Windows of at least this side (px) are copied one slice per point: at the coarse search's 81-93 px that is
+#: several times faster than one gather of every window (most of a short frame's windows there cross its border,
+#: which the gather's clamped indices make slowest); below about this side the one gather is faster (timings in
+#: bench/history.md, "Speed since 35ed7c7").
 SLICED_SIDE = 35
 
 
@@ -168,8 +168,8 @@ def zero_mean_minima(gray: np.ndarray, templates: np.ndarray, centres: np.ndarra
                      sums: FrameSums | None = None) -> np.ndarray:
     """(P,) the flat index i G + j of the least element of each point's (G, G) 'zero_mean' surface of
     :func:`ssd_surfaces` (G = 2 reach + 1; the first of equal ones): the same surfaces, the same arithmetic, made and
-    reduced one point at a time, so that no (P, G, G) array is made (at the coarse search's G = 81, about twice as
-    fast as the surfaces and their argmin; bench/history.md, "Speed since 35ed7c7")."""
+    reduced one point at a time, so that no (P, G, G) array is made (faster at the coarse search's G = 81: timings
+    in bench/history.md, "Speed since 35ed7c7")."""
     import cv2
 
     t = templates.shape[1]
