@@ -35,7 +35,7 @@ def _refresh(drift_check: float | None, offset: np.ndarray) -> tuple[ReferenceMa
     # a match used on both frames whose residual is far above the refresh's bound: every point is re-taken
     measured = GatedMeasurement(z=truth, R=np.repeat(np.eye(2)[None], n, 0), R_used=np.repeat(np.eye(2)[None], n, 0),
                                 valid=np.ones(n, bool), residual=np.full(n, 1e12), shown=np.ones(n, bool),
-                                shift=np.zeros((n, 2)))
+                                shift=np.zeros((n, 2)), jump=np.zeros((n, 2)))
     retaken = matcher.refresh(index, frame0, xy, frame1, truth + offset, np.ones(n, bool), measured)
     assert retaken.all()
     return matcher, measure.templates(frame1.gray, truth), truth

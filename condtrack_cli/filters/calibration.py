@@ -55,6 +55,15 @@ The model, per point, reported covariance = g (max(lambda, 1) Sigma + D + W + C)
   the time, NIS > 5 12-36 % (seq005, seq059, dinosaur, merton1). With the
   innovation term, found rows of P(wrong | nu) < 0.01 jumped 0-1.7 %, those
   of P >= 0.5 12-29 %.
+  J (issue 45): a point found again by the re-acquisition (``reference.py``,
+  ``_reacquire``: a search around where it was last found, tens of pixels from
+  its prediction) adds j j^T to D, j = z - the prediction, the jump: the
+  match's prior and innovation above are those of the gate around the search's
+  result, and say nothing of the jump. No measure tells the re-acquisition's
+  right finds from its wrong ones (docs/departures.md, "The re-acquisition's
+  jump": 2 of 110 right on KITTI, 1 of 6 on the camel, 5 of 5 on dudek_03),
+  so the point is either where the find put it or about where it was
+  predicted: a bounded either-or, j j^T its second moment, part of A.
 - W: the walk of the reference's offset (issue 45). Each re-take of the reference
   (``reference.py``, ``refresh``) adds lambda Sigma_post, the error of the position
   it was taken at, which every later match of the new patch repeats. A re-take that
@@ -120,8 +129,10 @@ by term and weighted by each term's trace (``scale_ratio``):
   misses make the second moment. (Until issue 45 this ratio followed the point's
   own lambda_p; lambda_p now grows the covariance instead, "Growth" above, and
   with the growth a ratio that follows lambda_p fitted no better than a constant);
-- the aperture offset A (a query that failed the trackability test):
-  ``RATIO_APERTURE`` 1, a bounded slide along an edge, not a tail;
+- the bounded part A of D: the aperture offset (a query that failed the
+  trackability test), a bounded slide along an edge, and the jumps of the
+  re-acquisitions (J below), a bounded either-or: ``RATIO_BOUNDED`` 1, not a
+  tail;
 - the walk W: ``RATIO_WALK``, a sum of many re-takes' offsets, most of them
   small (chosen by hand at 0.3 before the growth, bench/history.md; fitted with
   it, a tight core in a growing second moment);
@@ -168,10 +179,10 @@ from condtrack_cli.special import expit
 FORGET = 0.5
 
 #: The Student-t's scale over its covariance, per term of the reported covariance (module docstring, "Student-t"):
-#: the filter's own max(lambda, 1) Sigma, the aperture offset A, the rest of D, the coasting C and the walk W.
-#: Fitted together with the growth below (RATIO_APERTURE kept) by group and method (issue 45; module docstring).
+#: the filter's own max(lambda, 1) Sigma, the bounded part A of D, the rest of D, the coasting C and the walk W.
+#: Fitted together with the growth below (RATIO_BOUNDED kept) by group and method (issue 45; module docstring).
 RATIO_OWN = 0.103
-RATIO_APERTURE = 1.0
+RATIO_BOUNDED = 1.0
 RATIO_DRIFT = 0.0005
 RATIO_COAST = 0.0871
 RATIO_WALK = 0.0605
@@ -188,14 +199,14 @@ GROWTH_MAX = 16.8
 POINT_PRIOR = 1.0
 
 
-def scale_ratio(own: np.ndarray, aperture: np.ndarray, drift: np.ndarray, coast: np.ndarray,
+def scale_ratio(own: np.ndarray, bounded: np.ndarray, drift: np.ndarray, coast: np.ndarray,
                 walk: np.ndarray | float = 0.0, drift_shares: np.ndarray | float = 1.0) -> np.ndarray:
     """(n,) rho = tr(Student-t scale) / tr(covariance) of rows whose reported covariance is the sum of the traces
-    ``own`` (the filter's, lambda-scaled), ``aperture`` (A), ``drift`` (D - A), ``coast`` (C) and ``walk`` (W), all
+    ``own`` (the filter's, lambda-scaled), ``bounded`` (A), ``drift`` (D - A), ``coast`` (C) and ``walk`` (W), all
     (n,) px^2 (``walk`` 0: none), times any growth (which leaves rho alone); ``drift_shares`` (n,) n_D >= 1, the
     number of comparable frame shares D - A sums (module docstring, "Student-t"); in (0, 1)."""
-    total = own + aperture + drift + coast + walk
-    scale = (RATIO_OWN * own + RATIO_APERTURE * aperture + RATIO_DRIFT * drift_shares * drift + RATIO_COAST * coast
+    total = own + bounded + drift + coast + walk
+    scale = (RATIO_OWN * own + RATIO_BOUNDED * bounded + RATIO_DRIFT * drift_shares * drift + RATIO_COAST * coast
              + RATIO_WALK * walk)
     return np.clip(scale / np.where(total > 0, total, np.inf), RATIO_MIN, 0.999)
 
@@ -219,7 +230,8 @@ class ErrorModel:
         self.coasted = np.zeros(n_points)  #: t, frames since the point was last found
         self.detour = np.zeros((n_points, 2))  #: sum over the frames coasted of the dynamics' disagreement, px
         self.reported = np.full((n_points, 2, 2), np.nan)  #: the covariance reported, px^2
-        self.aperture_offset = np.zeros((n_points, 2, 2))  #: A, the part of D a query started with, px^2
+        #: A, the bounded part of D: the aperture offset a query started with and the re-acquisitions' J, px^2
+        self.bounded = np.zeros((n_points, 2, 2))
         self.ratio = np.full(n_points, np.nan)  #: rho, the Student-t's scale over the reported covariance
         self._nis = np.zeros(2)  #: forgotten sums of NIS and of the count of found points
         self._miss = np.zeros(2)  #: forgotten sums of |nu|^2 and of the count
@@ -256,7 +268,7 @@ class ErrorModel:
         self.drift[index] = offset
         self.drift_share_sums[index] = 0.0
         self.walk[index] = 0.0
-        self.aperture_offset[index] = offset
+        self.bounded[index] = offset
         self._point_nis[index] = 0.0
         self.coasted[index] = 0
         self.detour[index] = 0.0
@@ -272,9 +284,9 @@ class ErrorModel:
         factor = self.growth[index] if grow else np.ones(len(index))
         self.reported[index] = factor[:, None, None] * (own + (drift + coast) + walk)
         own, drift, coast, offset, walk = (np.trace(m, axis1=1, axis2=2)
-                                     for m in (own, drift, coast, self.aperture_offset[index], walk))
-        aperture = np.minimum(offset, drift)
-        self.ratio[index] = scale_ratio(own, aperture, drift - aperture, coast, walk, self.drift_shares(index))
+                                     for m in (own, drift, coast, self.bounded[index], walk))
+        bounded = np.minimum(offset, drift)
+        self.ratio[index] = scale_ratio(own, bounded, drift - bounded, coast, walk, self.drift_shares(index))
 
     def drift_shares(self, index: np.ndarray) -> np.ndarray:
         """(n,) n_D = (sum c_k)^2 / sum c_k^2 >= 1 of points ``index``: how many comparable frame shares c_k their
@@ -303,7 +315,8 @@ class ErrorModel:
 
     def update(self, index: np.ndarray, predicted: np.ndarray, s_pred: np.ndarray, z: np.ndarray, R: np.ndarray,
                found: np.ndarray, xy: np.ndarray, sigma: np.ndarray, retaken: np.ndarray,
-               disagreement: np.ndarray, offset_floor: np.ndarray | None = None) -> None:
+               disagreement: np.ndarray, offset_floor: np.ndarray | None = None,
+               jump: np.ndarray | None = None) -> None:
         """The reported covariance of points ``index`` after a step, and the pooled statistics.
 
         predicted (n, 2), s_pred (n, 2, 2): the gate's prediction and its covariance;
@@ -312,7 +325,9 @@ class ErrorModel:
         retaken (n,) bool: the reference patch was re-taken at the estimate;
         disagreement (n, 2): the local minus the dominant motion's one-step prediction at the point (px);
         offset_floor (n,): the least per-axis variance of a re-taken reference's offset (px^2; the module docstring's
-        W, ``ReferenceMatcher.offset_floor``), None or 0: none.
+        W, ``ReferenceMatcher.offset_floor``), None or 0: none;
+        jump (n, 2): where the match is a re-acquisition's, its move from the prediction (px; ``GatedMeasurement.jump``:
+        J, module docstring), None or 0: none.
         """
         S = s_pred + R
         if found.any():
@@ -342,6 +357,10 @@ class ErrorModel:
         self.drift[index] += share
         traces = np.trace(share, axis1=1, axis2=2)
         self.drift_share_sums[index] += np.column_stack([traces, traces * traces])
+        if jump is not None:  # J: the point is where the re-acquisition put it or where it was predicted
+            either = np.where(found[:, None, None], np.einsum("ni,nj->nij", jump, jump), 0.0)
+            self.drift[index] += either
+            self.bounded[index] += either
         scaled = max(lam, 1.0) * sigma
         self.coasted[index] = np.where(found, 0, self.coasted[index] + 1)
         self.detour[index] = np.where(found[:, None], 0.0, self.detour[index] + disagreement)

@@ -213,7 +213,7 @@ class CLFTracker(MDRTracker):
         disagreement = x_local - x_global if self.needs_local_motion else np.zeros_like(x_global)
         self.errors.update(index, x_pred, sigma_pred, measured.z, measured.R_used, measured.valid, self.xy[index],
                            self.cov[index], retaken, disagreement,
-                           self.reference.offset_floor[index])
+                           self.reference.offset_floor[index], measured.jump)
         if self.transitions is not None:
             self.transitions.record(frame.index, index, excess=self.errors.reported[index] - self.cov[index])
 

@@ -266,7 +266,7 @@ class CNLFTracker(Tracker):
         self._remember_layer(index, x_prev, found_before, measured.valid, motion.global_fit)
         self.errors.update(index, gate_mean, gate_cov, measured.z, measured.R_used, measured.valid, self.xy[index],
                            self.cov[index], retaken, disagreement,
-                           self.reference.offset_floor[index])
+                           self.reference.offset_floor[index], measured.jump)
         if self.transitions is not None:
             self.transitions.record(frame.index, index, excess=self.errors.reported[index] - self.cov[index])
 

@@ -164,7 +164,8 @@ class GatedMeasurement:
     """A measurement of n points: z (n, 2), R (n, 2, 2) raw (inf where uninformative),
     R_used (n, 2, 2) finite (identity where R is inf), valid (n,) bool, residual (n,), shown (n,) bool:
     valid, or unmeasurable but fitting its reference (module docstring), shift (n, 2): where the match was made
-    around the fallback centre (``lk_fallback``), that centre minus the prediction, else 0."""
+    around the fallback centre (``lk_fallback``), that centre minus the prediction, else 0; jump (n, 2): where the
+    match is the re-acquisition's (:meth:`ReferenceMatcher._reacquire`), z minus the prediction, else 0 (px)."""
 
     z: np.ndarray
     R: np.ndarray
@@ -173,6 +174,7 @@ class GatedMeasurement:
     residual: np.ndarray
     shown: np.ndarray
     shift: np.ndarray  #: (n, 2) the move of the prediction to the fallback gate centre (0: none)
+    jump: np.ndarray  #: (n, 2) the re-acquisition's move of the point from its prediction (0: none)
 
     @property
     def seen_unmeasured(self) -> np.ndarray:
@@ -325,10 +327,13 @@ class ReferenceMatcher:
             if tried.size:
                 m, r_used = self._fallback(index, tried, frame, prev, x_prev, predicted, s_pred, m, r_used, valid,
                                            shown, shift)
+        jump = np.zeros_like(predicted)
         if s.lk_fallback and prev is not None and lost_for is not None:
             lost = np.flatnonzero(~shown & (lost_for >= 1) & (lost_for <= REACQUIRE_FRAMES) & inside)
             if lost.size:
                 m, r_used = self._reacquire(index, lost, frame, predicted, s_pred, m, r_used, valid, shown, shift)
+                found_again = lost[shown[lost]]
+                jump[found_again] = m.z[found_again] - predicted[found_again]
         if s.foreign_residual is not None or s.flat_visible_residual is not None:
             fit = _fit(m)[valid]
             self.usual[index[valid]] = np.where(np.isnan(usual[valid]), fit,
@@ -336,7 +341,7 @@ class ReferenceMatcher:
         clamped = np.clip(r_used, -s.gate_r_max, s.gate_r_max)
         clamped[:, [0, 1], [0, 1]] = np.clip(r_used[:, [0, 1], [0, 1]], s.gate_r_min, s.gate_r_max)
         self.gate_r[index[valid]] = clamped[valid]
-        return GatedMeasurement(m.z, m.R, r_used, valid, m.residual, shown, shift)
+        return GatedMeasurement(m.z, m.R, r_used, valid, m.residual, shown, shift, jump)
 
     def _fallback(self, index: np.ndarray, tried: np.ndarray, frame: Frame, prev: Frame, x_prev: np.ndarray,
                   predicted: np.ndarray, s_pred: np.ndarray, m: Measurement, r_used: np.ndarray, valid: np.ndarray,
