@@ -80,6 +80,7 @@ def test_a_jump_beyond_the_search_square_is_found_around_the_lucas_kanade_centre
     np.testing.assert_allclose(on.z[on.valid], (xy + JUMP)[on.valid], atol=0.25)
     np.testing.assert_allclose(on.shift[on.valid], np.broadcast_to(JUMP, xy.shape)[on.valid], atol=1.0)  # LK's centre
     assert np.all(on.shift[~on.valid] == 0)
+    assert np.all(on.jump == 0)  # a fallback centre's match is not a re-acquisition's jump
 
 
 def test_only_points_found_before_are_tried():
@@ -109,6 +110,9 @@ def test_a_point_lost_for_frames_is_found_again_around_where_it_was_last_seen():
     assert found[3].valid.mean() >= 0.8
     np.testing.assert_allclose(found[3].shift[found[3].valid], np.broadcast_to(JUMP, xy.shape)[found[3].valid],
                                atol=2.0)  # the coarse search's centre, to its 2 px
+    # the jump the error model reads (J): the match minus the prediction, on the points found again only
+    np.testing.assert_array_equal(found[3].jump[found[3].valid], (found[3].z - xy)[found[3].valid])
+    assert np.all(found[3].jump[~found[3].valid] == 0)
     assert not found[0].valid.any() and not found[REACQUIRE_FRAMES + 1].valid.any()
 
 

@@ -14,7 +14,7 @@ from condtrack_cli.filters.calibration import (
     GROWTH_KNEE, GROWTH_MAX, GROWTH_POWER, RATIO_DRIFT, RATIO_MIN, RATIO_OWN, RATIO_WALK, ErrorModel, scale_ratio,
     tail_dof,
 )
-from condtrack_cli.predictive import major_std
+from condtrack_cli.predictive import ellipse_m2, major_std
 
 from conftest import SAMPLES
 
@@ -124,6 +124,41 @@ def test_a_wrong_match_term_summed_over_many_frames_has_a_wider_core():
     once, always = model.drift_shares(index[:2])
     assert once < 1.2 and always == pytest.approx(8.0, rel=0.03)
     assert np.trace(model.drift[1]) > 5 * np.trace(model.drift[0])
+
+
+def test_a_re_acquisition_jump_puts_the_prediction_inside_the_95_percent_ellipse():
+    """J: among 200 points matched at NIS 1 every frame, a point found again by the re-acquisition 50 px from its
+    prediction (``jump``) may be at either place, so its 95 % Student-t ellipse holds the prediction on every later
+    frame; the same match without the jump, or a jump on a frame where the point is not found, leaves the row as it
+    was. The jump joins D's bounded part A (ratio RATIO_BOUNDED), not the wrong-match shares that n_D counts."""
+    n = 203
+    jump = np.array([30.0, -40.0])
+
+    def run(jumps: bool):
+        model = ErrorModel(n, 9.21)
+        index, unit, zero = np.arange(n), np.repeat(np.eye(2)[None], n, 0), np.zeros((n, 2))
+        model.start(index, unit)
+        found = np.ones(n, bool)
+        found[2] = False  # point 2: not found on the jump's frame, found on the others
+        for frame in range(6):
+            moved = np.zeros((n, 2))
+            if jumps and frame == 2:
+                moved[:3] = jump  # point 0 found again there, point 1 matched as the others, point 2 not found
+                moved[1] = 0.0
+            model.begin_frame()
+            model.update(index, zero, unit, np.ones((n, 2)), unit, found | (frame != 2), zero, 0.5 * unit,
+                         np.zeros(n, bool), zero, None, moved)
+        return model
+
+    with_jump, without = run(True), run(False)
+    np.testing.assert_allclose(with_jump.bounded[0], np.outer(jump, jump))
+    np.testing.assert_array_equal(with_jump.reported[1:], without.reported[1:])
+    np.testing.assert_array_equal(with_jump.drift_shares(np.arange(n)), without.drift_shares(np.arange(n)))
+    for model, holds in ((with_jump, True), (without, False)):
+        covariance, dof = model.reported[0], model.dof[0]
+        m2 = jump @ np.linalg.solve(covariance, jump)  # the truth at the prediction: the find was wrong
+        assert (m2 <= ellipse_m2(0.95, dof)) == holds
+    assert with_jump.dof[0] > 10  # a bounded either-or, not a tail
 
 
 def test_max_std_hides_the_rows_whose_major_std_exceeds_it(clf_tracks, tmp_path):
