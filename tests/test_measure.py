@@ -14,7 +14,7 @@ from condtrack_cli import registry
 from condtrack_cli.measure.interface import Measurement
 from condtrack_cli.measure.noise import estimate_noise_sigma
 from condtrack_cli.measure.response import response_covariance, unit_sum_c, within_2px
-from condtrack_cli.measure.ssd import SSDMeasure, SSDSettings, measure
+from condtrack_cli.measure.ssd import SSDMeasure, SSDSettings, least_residuals, measure
 from condtrack_cli.measure.surfaces import (
     SLICED_SIDE, _windows, extract_templates, matching_cost, ssd_surfaces, zero_mean_minima,
 )
@@ -329,6 +329,31 @@ def test_points_at_and_beyond_the_frame_border():
     np.testing.assert_allclose(m.z[:2], xy, atol=0.05)  # found inside the frame
     assert np.isnan(m.z[2:]).all() and np.isnan(m.residual[2:]).all()  # no candidate in the frame / no prediction
     assert is_infinite(m.R[2:]).all() and not m.informative[2:].any()
+
+
+@pytest.mark.parametrize("cost", ["ssd", "zero_mean"])
+def test_least_residuals_are_the_measurements_residuals_whatever_points_are_measured_with_them(cost):
+    """``least_residuals`` is ``measure``'s residual, bit for bit, on points inside, across and beyond the border,
+    with a NaN prediction, in gates of several sizes; and ``measure`` gives every point of a fixed square search the
+    same measurement alone as among the others (the re-acquisition measures further only some of them)."""
+    rng = np.random.default_rng(7)
+    frame0, frame1, _ = downsampled_pair("camera.png", (3, 2), 2, 2.0, rng)
+    h, w = frame1.shape
+    xy = np.concatenate([corners(frame0, 24)[:60], [[2.0, 3.0], [w - 2.0, h - 1.5]]])
+    templates = extract_templates(frame0, xy, 11)
+    predicted = np.concatenate([xy + rng.uniform(-3, 3, xy.shape), [[-60.0, -60.0], [np.nan, 5.0]]])
+    templates = np.concatenate([templates, templates[:2]])
+    gates = rng.uniform(0.2, 30.0, len(predicted))[:, None, None] * np.eye(2)
+    settings = SSDSettings(cost=cost)
+    least = least_residuals(frame1, templates, predicted, gates, settings)
+    np.testing.assert_array_equal(least, measure(frame1, templates, predicted, gates, settings, 2.0).residual)
+    assert np.isfinite(least[:-2]).all() and np.isnan(least[-2:]).all()
+    square = np.repeat(np.eye(2)[None] * (3**2 / settings.gamma), len(predicted), axis=0)
+    whole = measure(frame1, templates, predicted, square, settings, 2.0)
+    some = rng.permutation(len(predicted))[:20]
+    alone = measure(frame1, templates[some], predicted[some], square[some], settings, 2.0)
+    for field in ("z", "R", "residual", "informative", "aligned"):
+        np.testing.assert_array_equal(getattr(alone, field), getattr(whole, field)[some])
 
 
 # --- occlusion, ambiguity and the gate ---------------------------------------------------------

@@ -378,17 +378,28 @@ class ReferenceMatcher:
         fit_bound: a match is used only where it fits the reference within this many times the usual residual;
         anchor: the reference matched is the point's first patch (``anchors``), which the points whose match is used
         take back as their reference; reach: the search's half-side around ``centre`` (px; None: the gate's, as
-        around the prediction)."""
+        around the prediction). With a ``reach``, the points whose least residual in that square
+        (``least_residuals``, where the stage has it) is already at least ``lk_better`` times the rival's are not
+        matched further: their match could not be used (on KITTI 82 % of the re-acquisition's matches;
+        bench/history.md)."""
         if not anchor:  # a centre inside the gate was searched there already, with the same patch
             ok = ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
                            self.gamma)
             tried, centre = tried[ok], centre[ok]
         if not tried.size:
             return m, r_used
-        m2, r2, valid2 = self._gated(index[tried], frame, centre, s_pred[tried], anchor, reach)
-        # and it must fit the reference clearly better than the best match around the prediction (none: NaN); the
-        # first patch is compared with its own fit there
+        templates = self.anchors[index[tried]] if anchor else self._references(index[tried], frame, centre)
+        # it must fit the reference clearly better than the best match around the prediction (none: NaN); the first
+        # patch is compared with its own fit there
         rival = self._first_patch_cost(index[tried], frame, m.z[tried]) if anchor else m.residual[tried]
+        if reach is not None and hasattr(self.measure, "least_residuals"):
+            least = self.measure.least_residuals(frame.gray, templates, centre,
+                                                 _square_gate(reach, len(tried), self.gamma))
+            may_win = ~(least >= self.settings.lk_better * rival)
+            tried, centre, templates, rival = tried[may_win], centre[may_win], templates[may_win], rival[may_win]
+            if not tried.size:
+                return m, r_used
+        m2, r2, valid2 = self._gated(index[tried], frame, centre, s_pred[tried], templates, reach)
         valid2 &= ~(m2.residual >= self.settings.lk_better * rival)
         if fit_bound is not None:
             valid2 &= _fit(m2) <= fit_bound * self._yardstick(index[tried])
@@ -463,12 +474,14 @@ class ReferenceMatcher:
         return half
 
     def _gated(self, index: np.ndarray, frame: Frame, predicted: np.ndarray, s_pred: np.ndarray,
-               anchor: bool = False, reach: int | None = None) -> tuple[Measurement, np.ndarray, np.ndarray]:
+               templates: np.ndarray | None = None, reach: int | None = None
+               ) -> tuple[Measurement, np.ndarray, np.ndarray]:
         """The measurement of points ``index`` in the gate around (n, 2) ``predicted`` (S_pred (n, 2, 2) ``s_pred``),
         its R_used (n, 2, 2) and (n,) bool whether it is used (the gate's position test, the residual test);
-        anchor: match their first patch (``anchors``) instead of their reference; reach: search only the square of
-        this half-side (px) around ``predicted`` (None: the gate's square, sized from S_pred + R_gate)."""
-        templates = self.anchors[index] if anchor else self._references(index, frame, predicted)
+        templates: the (n, t, t) patches matched (None: their references, :meth:`_references`); reach: search only
+        the square of this half-side (px) around ``predicted`` (None: the gate's square, sized from S_pred + R_gate)."""
+        if templates is None:
+            templates = self._references(index, frame, predicted)
         search = s_pred + self.gate_r[index] if reach is None else _square_gate(reach, len(index), self.gamma)
         m = self.measure.measure(frame.gray, templates, predicted, search, self.noise_sigma)
         r_used = np.where(m.informative[:, None, None], m.R, np.eye(2))

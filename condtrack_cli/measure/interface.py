@@ -54,6 +54,9 @@ class Measurer(Protocol):
     # Optional: ``searched(predicted (P, 2), gate_cov (P, 2, 2), xy (P, 2)) -> (P,) bool``, whether the search of
     # :meth:`measure` around ``predicted`` held the candidate nearest to ``xy`` (the filters' Lucas-Kanade fallback,
     # ``filters/reference.py``, re-measures only around centres outside it; without it: the gate ellipse).
+    # Optional: ``least_residuals(gray, templates (P, t, t), predicted (P, 2), gate_cov (P, 2, 2)) -> (P,)``, the
+    # ``Measurement.residual`` :meth:`measure` would report, alone (the re-acquisition measures further only the
+    # points whose match could be used; without it: every point).
 
     def measure(self, gray: np.ndarray, templates: np.ndarray, predicted: np.ndarray, gate_cov: np.ndarray,
                 sigma: float) -> Measurement:

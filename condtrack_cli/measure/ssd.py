@@ -58,6 +58,8 @@ symmetric with both eigenvalues >= r_floor: never singular, never negative.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from condtrack_cli.measure.interface import Measurement
@@ -105,23 +107,47 @@ def measure(
     centre is outside the frame are excluded. A point with a NaN prediction has no candidate.
     See the module docstring for the steps and :class:`Measurement` for the result.
     """
-    predicted = np.asarray(predicted, np.float64).reshape(-1, 2)
-    gate_cov = np.asarray(gate_cov, np.float64).reshape(-1, 2, 2)
+    predicted, gate_cov, half_sizes, groups = _grouped(predicted, gate_cov, settings)
     count = len(predicted)
-    known = np.isfinite(predicted).all(axis=1)
     z, R = np.full((count, 2), np.nan), infinite_covariance(count)
     residual, informative, aligned = np.full(count, np.nan), np.zeros(count, bool), np.full(count, np.nan)
-    if not known.any():
-        return Measurement(z, R, residual, informative, aligned)
-    half_sizes = _half_sizes(gate_cov, settings)
-    if sums is None:
+    if groups and sums is None:
         sums = frame_sums(gray, settings.template, settings.cost)
-    for points in _search_groups(half_sizes, known, settings):
+    for points in groups:
         part = _measure_group(gray, sums, templates[points], predicted[points], gate_cov[points],
                               half_sizes[points], settings, sigma)
         z[points], R[points], residual[points], informative[points] = part.z, part.R, part.residual, part.informative
         aligned[points] = part.aligned
     return Measurement(z, R, residual, informative, aligned)
+
+
+def least_residuals(gray: np.ndarray, templates: np.ndarray, predicted: np.ndarray, gate_cov: np.ndarray,
+                    settings: SSDSettings, sums: FrameSums | None = None) -> np.ndarray:
+    """(P,) the least residual of each point's gate (grey levels^2), the ``Measurement.residual`` of :func:`measure`
+    with the same arguments, NaN where the gate holds no candidate; without the sub-pixel step, R_k or the tests,
+    for a caller that uses a match only below some residual (``filters/reference.py``: the re-acquisition).
+
+    A point's residuals depend only on its own template, prediction and gate, not on the other points measured
+    with it: those of the points :func:`measure` is then given alone are these."""
+    predicted, gate_cov, half_sizes, groups = _grouped(predicted, gate_cov, settings)
+    residual = np.full(len(predicted), np.nan)
+    if groups and sums is None:
+        sums = frame_sums(gray, settings.template, settings.cost)
+    for points in groups:
+        part = _gate_minima(gray, sums, templates[points], predicted[points], gate_cov[points], half_sizes[points],
+                            settings)
+        residual[points] = np.where(part.found, part.residual, np.nan)
+    return residual
+
+
+def _grouped(predicted: np.ndarray, gate_cov: np.ndarray,
+             settings: SSDSettings) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+    """(P, 2) predictions and (P, 2, 2) gate covariances as float64 arrays, the (P,) search half-sizes and the
+    :func:`_search_groups` of the points with finite predictions."""
+    predicted = np.asarray(predicted, np.float64).reshape(-1, 2)
+    gate_cov = np.asarray(gate_cov, np.float64).reshape(-1, 2, 2)
+    half_sizes = _half_sizes(gate_cov, settings)
+    return predicted, gate_cov, half_sizes, _search_groups(half_sizes, np.isfinite(predicted).all(axis=1), settings)
 
 
 def searched(predicted: np.ndarray, gate_cov: np.ndarray, xy: np.ndarray, settings: SSDSettings) -> np.ndarray:
@@ -154,12 +180,25 @@ def _search_groups(half_sizes: np.ndarray, known: np.ndarray, settings: SSDSetti
     return groups
 
 
-def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, predicted: np.ndarray,
-                   gate_cov: np.ndarray, half_sizes: np.ndarray, settings: SSDSettings, sigma: float) -> Measurement:
-    """:func:`measure` of P points with finite predictions and their (P,) search half-sizes; ``sums``: the frame's
-    :func:`frame_sums`."""
+class _GateMinima(NamedTuple):
+    """The residual surfaces of P points and their least residual in the gate (:func:`_gate_minima`)."""
+
+    r_full: np.ndarray  #: (P, G, G) residuals of the candidates and the support's margin (inf outside the frame)
+    gate: np.ndarray  #: (P, G', G') bool, the candidates in the gate (G' = 2 largest + 1)
+    candidates: np.ndarray  #: (P, G', G') the candidates' residuals (a view of r_full)
+    gated: np.ndarray  #: (P, G', G') the candidates' residuals, inf outside the gate
+    found: np.ndarray  #: (P,) bool, a finite residual in the gate
+    row: np.ndarray  #: (P,) the integer minimum's row in r_full
+    col: np.ndarray  #: (P,) and its column
+    residual: np.ndarray  #: (P,) the least residual in the gate (the window's centre's where none)
+    integer: np.ndarray  #: (P, 2) the integer minimum's position (px)
+
+
+def _gate_minima(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, predicted: np.ndarray,
+                 gate_cov: np.ndarray, half_sizes: np.ndarray, settings: SSDSettings) -> _GateMinima:
+    """Step 1 of :func:`measure` (eq. 6) for P points with finite predictions and their (P,) search half-sizes: the
+    residual surfaces and the integer minimum in each gate; ``sums``: the frame's :func:`frame_sums`."""
     count = len(predicted)
-    t = templates.shape[1]
     half = settings.support // 2
     largest = int(half_sizes.max())
     reach = largest + half  # the candidates plus the margin of the support W(z_k)
@@ -193,8 +232,19 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
     row = np.where(found, flat // side, largest) + half  # the integer minimum, index into r_full
     col = np.where(found, flat % side, largest) + half
     residual = r_full[np.arange(count), row, col]
-
     integer = np.stack([centres[:, 0] + col - reach, centres[:, 1] + row - reach], axis=1).astype(np.float64)
+    return _GateMinima(r_full, gate, candidates, gated, found, row, col, residual, integer)
+
+
+def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, predicted: np.ndarray,
+                   gate_cov: np.ndarray, half_sizes: np.ndarray, settings: SSDSettings, sigma: float) -> Measurement:
+    """:func:`measure` of P points with finite predictions and their (P,) search half-sizes; ``sums``: the frame's
+    :func:`frame_sums`."""
+    count = len(predicted)
+    t = templates.shape[1]
+    half = settings.support // 2
+    r_full, gate, candidates, gated, found, row, col, residual, integer = _gate_minima(
+        gray, sums, templates, predicted, gate_cov, half_sizes, settings)
     z, at_z = refine(gray, templates, integer, settings.cost)
 
     offsets = np.arange(-half, half + 1)
@@ -265,9 +315,19 @@ class SSDMeasure:
         self, gray: np.ndarray, templates: np.ndarray, predicted: np.ndarray, gate_cov: np.ndarray, sigma: float
     ) -> Measurement:
         """:func:`measure` with this stage's settings; the frame's window sums computed once per frame."""
+        return measure(gray, templates, predicted, gate_cov, self.settings, sigma, self._frame_sums(gray))
+
+    def least_residuals(self, gray: np.ndarray, templates: np.ndarray, predicted: np.ndarray,
+                        gate_cov: np.ndarray) -> np.ndarray:
+        """:func:`least_residuals` with this stage's settings and the frame's window sums."""
+        return least_residuals(gray, templates, predicted, gate_cov, self.settings, self._frame_sums(gray))
+
+    def _frame_sums(self, gray: np.ndarray) -> FrameSums:
+        """The frame's :func:`frame_sums`, computed once per frame (``auto`` measures its CLF and its CNLF points
+        apart)."""
         if self._sums is None or self._sums[0] is not gray:
             self._sums = (gray, frame_sums(gray, self.settings.template, self.settings.cost))
-        return measure(gray, templates, predicted, gate_cov, self.settings, sigma, self._sums[1])
+        return self._sums[1]
 
 
 def make_ssd(settings: SSDSettings, **_context) -> SSDMeasure:
