@@ -127,8 +127,10 @@ def least_residuals(gray: np.ndarray, templates: np.ndarray, predicted: np.ndarr
     with the same arguments, NaN where the gate holds no candidate; without the sub-pixel step, R_k or the tests,
     for a caller that uses a match only below some residual (``filters/reference.py``: the re-acquisition).
 
-    A point's residuals depend only on its own template, prediction and gate, not on the other points measured
-    with it: those of the points :func:`measure` is then given alone are these."""
+    In a search of one half-size for every point (a fixed square, as the re-acquisition's), a point's residuals do
+    not depend on the other points measured with it: those of the points :func:`measure` is then given alone are
+    these (tested). Gates of different sizes are grouped, each group's surfaces cover its largest gate, and
+    ``cv2.matchTemplate``'s sums may then differ in their last bits with the window's size."""
     predicted, gate_cov, half_sizes, groups = _grouped(predicted, gate_cov, settings)
     residual = np.full(len(predicted), np.nan)
     if groups and sums is None:
