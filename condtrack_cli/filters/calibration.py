@@ -60,8 +60,8 @@ The model, per point, reported covariance = g (max(lambda, 1) Sigma + D + W + C)
   its prediction) adds j j^T to D, j = z - the prediction, the jump: the
   match's prior and innovation above are those of the gate around the search's
   result, and say nothing of the jump. No measure tells the re-acquisition's
-  right finds from its wrong ones (docs/departures.md, "The re-acquisition's
-  jump": 2 of 110 right on KITTI, 1 of 6 on the camel, 5 of 5 on dudek_03),
+  right finds from its wrong ones (nearly all wrong on KITTI, all right on
+  dudek_03: docs/departures.md, "The re-acquisition's jump", has the counts),
   so the point is either where the find put it or about where it was
   predicted: a bounded either-or, j j^T its second moment, part of A.
 - W: the walk of the reference's offset (issue 45). Each re-take of the reference

@@ -380,8 +380,8 @@ class ReferenceMatcher:
         take back as their reference; reach: the search's half-side around ``centre`` (px; None: the gate's, as
         around the prediction). With a ``reach``, the points whose least residual in that square
         (``least_residuals``, where the stage has it) is already at least ``lk_better`` times the rival's are not
-        matched further: their match could not be used (on KITTI 82 % of the re-acquisition's matches;
-        bench/history.md), and the others' is the same (one half-size: ``least_residuals``)."""
+        matched further: their match could not be used (most of the re-acquisition's matches on KITTI:
+        bench/history.md, "Eighth round"), and the others' is the same (one half-size: ``least_residuals``)."""
         if not anchor:  # a centre inside the gate was searched there already, with the same patch
             ok = ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
                            self.gamma)
