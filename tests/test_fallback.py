@@ -17,6 +17,7 @@ from condtrack_cli.filters.reference import (
     COARSE_SIDE,
     REACQUIRE_FIT,
     REACQUIRE_FRAMES,
+    REACQUIRE_REACH,
     HalfFrame,
     ReferenceMatcher,
     coarse_centres,
@@ -192,6 +193,39 @@ def test_a_lost_point_predicted_outside_the_frame_is_not_searched_for(monkeypatc
     assert not found.valid[outside].any()
     assert found.valid[~outside].mean() >= 0.8
     np.testing.assert_allclose(found.z[found.valid], (xy + JUMP)[found.valid], atol=0.25)
+
+
+def test_a_lost_point_never_matched_is_not_searched_for(monkeypatch):
+    """Re-acquisition's skip: a lost point with no usual residual (never matched since its query) is not searched
+    for, and could not have been found: even centred on its true position, its match fails the ``REACQUIRE_FIT``
+    bound. The others are searched for and found as in the tests above."""
+    import condtrack_cli.filters.reference as module
+
+    searched_for = []
+    search = module.coarse_search
+    monkeypatch.setattr(module, "coarse_search",
+                        lambda patches, cur, xy: searched_for.append(len(xy)) or search(patches, cur, xy))
+    frame0, frame1, xy, reference, index, s_pred = _started()
+    assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
+    n = len(xy)
+    never = np.arange(n) % 3 == 0
+    reference.usual[never] = np.nan
+    found = reference.measure_in_gate(index, frame1, xy, s_pred, frame0, xy, np.zeros(n, bool), np.full(n, 3))
+    assert searched_for and searched_for[0] == n - never.sum()
+    assert not found.valid[never].any()
+    assert found.valid[~never].mean() >= 0.8
+    gate = Measurement(xy.copy(), np.repeat(np.eye(2)[None], n, 0), np.full(n, np.nan), np.zeros(n, bool),
+                       np.full(n, np.nan))
+    valid, shown, shift = np.zeros(n, bool), np.zeros(n, bool), np.zeros((n, 2))
+    reference._match_around(index, np.flatnonzero(never), (xy + JUMP)[never], frame1, xy, s_pred, gate,
+                            np.repeat(np.eye(2)[None], n, 0), valid, shown, shift, REACQUIRE_FIT,
+                            reach=REACQUIRE_REACH)
+    assert not valid.any()
+    reference.usual[never] = 1e9  # the same matches with a yardstick: found
+    reference._match_around(index, np.flatnonzero(never), (xy + JUMP)[never], frame1, xy, s_pred, gate,
+                            np.repeat(np.eye(2)[None], n, 0), valid, shown, shift, REACQUIRE_FIT,
+                            reach=REACQUIRE_REACH)
+    assert valid[never].mean() >= 0.8
 
 
 def test_lucas_kanade_centres_at_half_resolution_follow_the_jump():

@@ -270,7 +270,9 @@ class ReferenceMatcher:
             return plain
         offsets = np.arange(t) - t // 2
         v = np.stack(np.meshgrid(offsets, offsets), axis=-1).astype(np.float64)  # (t, t, 2): (x, y) of each pixel
-        source = np.einsum("nij,abj->nabi", inverse[moved], v) + side // 2  # (m, t, t, 2)
+        moved_inverse = inverse[moved][:, None, None]  # (m, 1, 1, 2, 2); the products written out: an einsum of
+        # this shape took several times as long (bench/history.md, "Ninth round")
+        source = moved_inverse[..., 0] * v[..., 0, None] + moved_inverse[..., 1] * v[..., 1, None] + side // 2
         source = np.clip(source, 0, side - 1)
         corner = np.minimum(np.floor(source).astype(np.intp), side - 2)
         fx, fy = np.moveaxis(source - corner, -1, 0)
@@ -452,7 +454,14 @@ class ReferenceMatcher:
         The full-resolution match is made within ``REACQUIRE_REACH`` px of the search's result (where the search found
         the point, within a pixel of it on the half-resolution grid), not in the point's gate, which grows while it
         coasts up to ``search_max``: nearly the same points are found again, at a fraction of the cost
-        (bench/history.md, "Speed since 35ed7c7")."""
+        (bench/history.md, "Speed since 35ed7c7").
+
+        A point with no usual residual (never matched since its query: a patch flatter than the noise, a query on
+        what is already covered) is not searched for: its yardstick is NaN, so that no match could pass the
+        ``REACQUIRE_FIT`` bound (a third to a half of KITTI's searches; bench/history.md, "Ninth round")."""
+        lost = lost[np.isfinite(self._yardstick(index[lost]))]
+        if not lost.size:
+            return m, r_used
         centre = coarse_search(self.last_patch[index[lost]], self._half(frame), self.last_seen[index[lost]])
         m, r_used = self._match_around(index, lost, centre, frame, predicted, s_pred, m, r_used, valid, shown, shift,
                                        REACQUIRE_FIT, reach=REACQUIRE_REACH)
@@ -493,7 +502,8 @@ class ReferenceMatcher:
 
     def _yardstick(self, index: np.ndarray) -> np.ndarray:
         """(n,) the residual a match of points ``index`` is compared with: their usual one, at least the noise's
-        expectation m 2 sigma^2 (m template pixels; a sub-pixel match's residual falls to it); NaN before the first."""
+        expectation m 2 sigma^2 (m template pixels; a sub-pixel match's residual falls to it); NaN before the first
+        (``np.maximum`` keeps it), where every bound on it fails."""
         return np.maximum(self.usual[index], self._noise_ssd())
 
     def _noise_ssd(self) -> float:
