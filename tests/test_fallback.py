@@ -143,6 +143,21 @@ def test_a_lost_point_whose_last_patch_is_the_occluders_is_found_again_by_its_fi
         assert np.array_equal(reference.templates[~found.valid], occluder[~found.valid])
 
 
+def test_a_point_both_searches_find_is_found_by_its_last_patch():
+    """The re-acquisition measures the last patch's and the first patch's matches together and uses them in turn:
+    where both find the point, the last patch's match is used and the point keeps its reference (re-taken here on
+    frame 1 at the truth) instead of taking its first patch back."""
+    frame0, frame1, xy, reference, index, s_pred = _started()
+    assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
+    retaken = reference.measure.templates(frame1.gray, xy + JUMP)
+    reference._take(index, retaken, reference._wide_patches(frame1, xy + JUMP))
+    n = len(xy)
+    found = reference.measure_in_gate(index, frame1, xy, s_pred, frame0, xy, np.zeros(n, bool), np.full(n, 3))
+    assert found.valid.mean() >= 0.8
+    np.testing.assert_allclose(found.z[found.valid], (xy + JUMP)[found.valid], atol=0.25)
+    np.testing.assert_array_equal(reference.templates, retaken)
+
+
 def test_a_first_patch_match_is_weighed_against_the_first_patch_where_the_gate_matched():
     """The first patch's match around the truth (frame 1 = frame 0 moved by JUMP) is used although the gate's match,
     made with a reference re-taken on an occluder, fits that reference perfectly (residual 0 at the points' frame 0
@@ -189,7 +204,7 @@ def test_a_lost_point_predicted_outside_the_frame_is_not_searched_for(monkeypatc
     predicted = np.where(outside[:, None], [-5.0, 10.0], xy)
     found = reference.measure_in_gate(index, frame1, predicted, s_pred, frame0, xy, np.zeros(n, bool),
                                       np.full(n, 3))
-    assert searched_for and searched_for[0] == n - outside.sum()
+    assert searched_for and searched_for[0] == 2 * (n - outside.sum())  # by their last and their first patch
     assert not found.valid[outside].any()
     assert found.valid[~outside].mean() >= 0.8
     np.testing.assert_allclose(found.z[found.valid], (xy + JUMP)[found.valid], atol=0.25)
@@ -211,7 +226,7 @@ def test_a_lost_point_never_matched_is_not_searched_for(monkeypatch):
     never = np.arange(n) % 3 == 0
     reference.usual[never] = np.nan
     found = reference.measure_in_gate(index, frame1, xy, s_pred, frame0, xy, np.zeros(n, bool), np.full(n, 3))
-    assert searched_for and searched_for[0] == n - never.sum()
+    assert searched_for and searched_for[0] == 2 * (n - never.sum())  # by their last and their first patch
     assert not found.valid[never].any()
     assert found.valid[~never].mean() >= 0.8
     gate = Measurement(xy.copy(), np.repeat(np.eye(2)[None], n, 0), np.full(n, np.nan), np.zeros(n, bool),
