@@ -188,15 +188,21 @@ def test_the_coarse_search_finds_a_half_resolution_patch_within_its_reach():
     np.testing.assert_allclose(coarse_search(patches, half1, xy), xy + JUMP, atol=2.0)
 
 
-def test_a_lost_point_predicted_outside_the_frame_is_not_searched_for(monkeypatch):
-    """Re-acquisition's skip: a lost point predicted outside the frame left it with the motion around it and is not
-    searched for; the others are searched for and found as in the test above."""
+def _counted_searches(monkeypatch) -> list[int]:
+    """The number of points of each ``coarse_search`` call from now on (the list grows as they are made)."""
     import condtrack_cli.filters.reference as module
 
-    searched_for = []
+    searched_for: list[int] = []
     search = module.coarse_search
     monkeypatch.setattr(module, "coarse_search",
                         lambda patches, cur, xy: searched_for.append(len(xy)) or search(patches, cur, xy))
+    return searched_for
+
+
+def test_a_lost_point_predicted_outside_the_frame_is_not_searched_for(monkeypatch):
+    """Re-acquisition's skip: a lost point predicted outside the frame left it with the motion around it and is not
+    searched for; the others are searched for and found as in the test above."""
+    searched_for = _counted_searches(monkeypatch)
     frame0, frame1, xy, reference, index, s_pred = _started()
     assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
     n = len(xy)
@@ -214,12 +220,7 @@ def test_a_lost_point_never_matched_is_not_searched_for(monkeypatch):
     """Re-acquisition's skip: a lost point with no usual residual (never matched since its query) is not searched
     for, and could not have been found: even centred on its true position, its match fails the ``REACQUIRE_FIT``
     bound. The others are searched for and found as in the tests above."""
-    import condtrack_cli.filters.reference as module
-
-    searched_for = []
-    search = module.coarse_search
-    monkeypatch.setattr(module, "coarse_search",
-                        lambda patches, cur, xy: searched_for.append(len(xy)) or search(patches, cur, xy))
+    searched_for = _counted_searches(monkeypatch)
     frame0, frame1, xy, reference, index, s_pred = _started()
     assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
     n = len(xy)
