@@ -400,13 +400,11 @@ class ReferenceMatcher:
         same patch), except with ``anchor``, where the patch matched is the point's first one (``anchors``), which
         is compared with its own fit where the gate's match lies: the match must fit clearly better than that rival
         (``lk_better``; NaN: none), the reference's best residual in the gate without ``anchor``."""
-        if not anchor:
-            ok = ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre,
-                           self.gamma)
-            tried, centre = tried[ok], centre[ok]
         if anchor:
             return _Attempt(tried, centre, self.anchors[index[tried]],
                             self._first_patch_cost(index[tried], frame, m.z[tried]), True)
+        ok = ~searched(self.measure, predicted[tried], s_pred[tried] + self.gate_r[index[tried]], centre, self.gamma)
+        tried, centre = tried[ok], centre[ok]
         return _Attempt(tried, centre, self._references(index[tried], frame, centre), m.residual[tried], False)
 
     def _match_attempts(self, index: np.ndarray, attempts: list[_Attempt], frame: Frame, predicted: np.ndarray,
@@ -453,7 +451,8 @@ class ReferenceMatcher:
                 continue
             if anchor:
                 self._take(index[won], self.anchors[index[won]], self.anchor_wide[index[won]])
-            m = Measurement(*(np.array(a, copy=True) for a in (m.z, m.R, m.residual, m.informative, _fit(m))))
+            m = Measurement(*(np.array(array, copy=True) for array in (m.z, m.R, m.residual, m.informative,
+                                                                      _fit(m))))
             m.z[won], m.R[won] = m2.z[usable], m2.R[usable]
             m.residual[won], m.informative[won] = m2.residual[usable], m2.informative[usable]
             m.aligned[won] = _fit(m2)[usable]
@@ -495,7 +494,7 @@ class ReferenceMatcher:
         point takes its first patch back as its reference. Both searches, and both matches, are made for every
         lost point at once (:meth:`_match_attempts`: the first patch's match of a point that its last patch found
         is not used): each measurement's fixed cost is paid once, for a few per cent more searches (the last
-        patch finds 3 % of KITTI's lost points). Updates as :meth:`_fallback`.
+        patch finds 1-3 % of KITTI's lost points). Updates as :meth:`_fallback`.
 
         The full-resolution match is made within ``REACQUIRE_REACH`` px of the search's result (where the search found
         the point, within a pixel of it on the half-resolution grid), not in the point's gate, which grows while it
