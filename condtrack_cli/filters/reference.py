@@ -282,7 +282,7 @@ class ReferenceMatcher:
         offsets = np.arange(t) - t // 2
         v = np.stack(np.meshgrid(offsets, offsets), axis=-1).astype(np.float64)  # (t, t, 2): (x, y) of each pixel
         moved_inverse = inverse[moved][:, None, None]  # (m, 1, 1, 2, 2); the products written out: an einsum of
-        # this shape took several times as long (bench/history.md, "Ninth round")
+        # this shape took longer (bench/history.md, "Ninth round")
         source = moved_inverse[..., 0] * v[..., 0, None] + moved_inverse[..., 1] * v[..., 1, None] + side // 2
         source = np.clip(source, 0, side - 1)
         corner = np.minimum(np.floor(source).astype(np.intp), side - 2)
@@ -493,8 +493,8 @@ class ReferenceMatcher:
         lies (the reference, re-taken on the occluder, fits the occluder well there). Where that match is used the
         point takes its first patch back as its reference. Both searches, and both matches, are made for every
         lost point at once (:meth:`_match_attempts`: the first patch's match of a point that its last patch found
-        is not used): each measurement's fixed cost is paid once, for a few per cent more searches (the last
-        patch finds 1-3 % of KITTI's lost points). Updates as :meth:`_fallback`.
+        is not used): each measurement's fixed cost is paid once, for the first-patch searches of the few points
+        the last patch finds (bench/history.md, "Ninth round"). Updates as :meth:`_fallback`.
 
         The full-resolution match is made within ``REACQUIRE_REACH`` px of the search's result (where the search found
         the point, within a pixel of it on the half-resolution grid), not in the point's gate, which grows while it
@@ -503,7 +503,7 @@ class ReferenceMatcher:
 
         A point with no usual residual (never matched since its query: a patch flatter than the noise, a query on
         what is already covered) is not searched for: its yardstick is NaN, so that no match could pass the
-        ``REACQUIRE_FIT`` bound (a third to a half of KITTI's searches; bench/history.md, "Ninth round")."""
+        ``REACQUIRE_FIT`` bound (how many of KITTI's searches that was: bench/history.md, "Ninth round")."""
         lost = lost[np.isfinite(self._yardstick(index[lost]))]
         if not lost.size:
             return m, r_used
