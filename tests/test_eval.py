@@ -707,6 +707,75 @@ def test_bench_meter_reads_the_command_s_own_peak_memory():
     assert code == 1 and message == "Error: no frame"
 
 
+def test_bench_meter_reads_the_command_s_cpu_time():
+    """``run_metered`` (``bench/peak.py``) reads the command's user + system CPU time: a second of sleep costs next
+    to none, a busy loop about its wall time (one thread: never much more than its wall time)."""
+    import sys
+
+    from condtrack_cli.evaluate.bench.common import run_metered
+
+    asleep = run_metered([sys.executable, "-c", "import time; time.sleep(1.0)"])
+    assert asleep.code == 0 and asleep.seconds >= 1.0 and asleep.cpu_seconds < 0.5, asleep
+    busy = run_metered([sys.executable, "-c", "x = 0\nfor i in range(3_000_000): x += i"])
+    assert busy.code == 0 and 0.05 < busy.cpu_seconds <= busy.seconds * 1.1 + 0.05, busy
+
+
+def test_bench_versus_row_takes_the_ratio_within_each_round():
+    """``versus_row`` (``bench --speed-versus``): the bound is checked on the median of the rounds' own ratios, so a
+    round where the whole machine ran slow does not tip it; the median walls and the ratios to the script are shown."""
+    from condtrack_cli.evaluate.bench.common import Metered
+    from condtrack_cli.evaluate.bench.speed import VERSUS_BOUND, versus_row
+
+    def runs(*seconds):
+        return [Metered(wall, wall / 2, 100.0, 0, "") for wall in seconds]
+
+    # round 2 ran twice as slow for both; this tree takes 1.1x the earlier commit's time in every round
+    row = versus_row("auto", runs(4.0, 8.0, 4.0), runs(4.4, 8.8, 4.4), 1.0)
+    assert row == "| auto | 4.00 | 4.40 | 1.100 (1.10-1.10) | 1.100 | 4.00 / 4.40 | pass (<= 1.15x) |"
+    slower = versus_row("clf", runs(2.0, 2.0, 2.0), runs(2.4, 2.2, 2.6), 0.5)
+    assert slower.endswith(f"| 4.00 / 4.80 | FAIL (<= {VERSUS_BOUND:g}x) |") and "1.200 (1.10-1.30)" in slower
+
+
+def test_bench_speed_versus_refuses_what_names_no_commit(tmp_path):
+    """``--speed-versus`` reads the earlier commit from this checkout's history: a name git does not know is a
+    one-line ``Error:`` (exit 1, nothing on stdout), as is a checkout without git; ``--rounds`` must be positive."""
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-m", "condtrack_cli.evaluate.bench", "--speed-versus", "no-such-commit",
+                             "--work", str(tmp_path)], capture_output=True, text=True)
+    assert result.returncode == 1 and result.stdout == ""
+    assert result.stderr.startswith("Error: --speed-versus") and result.stderr.count("\n") == 1, result.stderr
+    result = subprocess.run([sys.executable, "-m", "condtrack_cli.evaluate.bench", "--speed-versus", "HEAD",
+                             "--rounds", "0", "--work", str(tmp_path)], capture_output=True, text=True)
+    assert result.returncode == 2 and "--rounds: expected a positive integer, got 0" in result.stderr
+
+
+def test_bench_speed_versus_runs_the_commit_s_own_package(tmp_path):
+    """``extract_revision`` puts the commit's ``condtrack_cli`` in a folder of its own, its files those of git's
+    history; with ``PYTHONPATH`` on that folder, ``python -m condtrack_cli`` imports it, not this tree's."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from condtrack_cli.evaluate.bench.common import REPO
+    from condtrack_cli.evaluate.bench.speed import extract_revision
+
+    import shutil
+
+    if shutil.which("git") is None or subprocess.run(["git", "-C", str(REPO), "rev-parse", "HEAD"],
+                                                     capture_output=True).returncode:
+        pytest.skip(f"git is missing or {REPO} is not a git checkout")
+    label, folder = extract_revision("HEAD", tmp_path)
+    committed = subprocess.run(["git", "-C", str(REPO), "show", "HEAD:condtrack_cli/types.py"], capture_output=True,
+                               check=True).stdout
+    assert (folder / "condtrack_cli" / "types.py").read_bytes() == committed and folder.parent == tmp_path
+    found = subprocess.run([sys.executable, "-c", "import condtrack_cli; print(condtrack_cli.__file__)"],
+                           env={**os.environ, "PYTHONPATH": str(folder)}, cwd=tmp_path, capture_output=True, text=True,
+                           check=True).stdout.strip()
+    assert Path(found) == folder / "condtrack_cli" / "__init__.py" and len(label) == 12
+
+
 def test_check_queries_tolerance_and_frames_without_visible_truth():
     """Issue 28.2: a query within 1 px of the truth on its frame passes, 1.2 px away is refused; frames where the
     truth is not visible (or past its end) are not checked."""

@@ -16,7 +16,9 @@ the smallest stride that fits) to bound the run time.
 
 ``--batch`` prints only the batch throughput table (``batch_table``);
 ``--speed`` only the speed comparison and the profile; ``--memory`` only the
-peak memory by clip length (``memory_table``).
+peak memory by clip length (``memory_table``). ``--speed-versus COMMIT`` prints only
+this tree's whole-process times against an earlier commit's, in alternated rounds
+(``versus_table``: issue 45's speed bound, ``--rounds`` of them).
 
 ``--versus-lk`` prints only the section against OpenCV LK and chained DIS (issues 11 and 45), with its
 per-group tables; ``--methods`` and ``--sets`` narrow it to some columns and sets (a quick subset),
@@ -48,7 +50,7 @@ from pathlib import Path
 from condtrack_cli.evaluate.bench.accuracy import accuracy_table, calibration_table, support_table
 from condtrack_cli.evaluate.bench.common import REPO
 from condtrack_cli.evaluate.bench.hard import REPORT_SEEDS, TUNE_SEEDS, hard_cases_table
-from condtrack_cli.evaluate.bench.speed import batch_table, memory_table, profile_table, speed_table
+from condtrack_cli.evaluate.bench.speed import batch_table, memory_table, profile_table, speed_table, versus_table
 from condtrack_cli.evaluate.bench.versus_lk import (
     COLUMNS, NONRIGID_REPORT_SEEDS, NONRIGID_TUNE_SEEDS, PAPER_METHODS, versus_lk_section,
 )
@@ -112,6 +114,10 @@ def main() -> None:
     parser.add_argument("--batch", action="store_true", help="only print the batch throughput table")
     parser.add_argument("--speed", action="store_true",
                         help="only print the speed comparison with OpenCV LK and the profile table (issue 13)")
+    parser.add_argument("--speed-versus", metavar="COMMIT",
+                        help="only print this tree's whole-process times against COMMIT's (a commit of this checkout), "
+                             "alternated (issue 45's speed bound)")
+    parser.add_argument("--rounds", type=int, default=5, help="with --speed-versus: the rounds (5)")
     parser.add_argument("--memory", action="store_true",
                         help="only print the peak memory of each method by clip length (issue 13)")
     parser.add_argument("--shared-data", type=Path, default=REPO.parent / "shared" / "data",
@@ -163,6 +169,12 @@ def main() -> None:
         print("\n".join(speed_table(args.work, args.shared_data) + ["One thread:", ""]
                         + speed_table(args.work, args.shared_data, threads=1) + ["## Profile", ""]
                         + profile_table(args.work, args.shared_data)))
+        return
+    if args.speed_versus:
+        if args.rounds < 1:
+            parser.error(f"--rounds: expected a positive integer, got {args.rounds}")
+        args.work.mkdir(parents=True, exist_ok=True)
+        print("\n".join(versus_table(args.work, args.shared_data, args.speed_versus, args.rounds)))
         return
     if args.memory:
         shutil.rmtree(args.work / "speed", ignore_errors=True)

@@ -7,6 +7,7 @@ import subprocess
 import sys
 import tempfile
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -39,20 +40,34 @@ def write_queries(rows: np.ndarray, path: Path) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
-def run_process(command: list[str]) -> tuple[float, float, int, str]:
-    """Run ``command``: (wall seconds, peak RSS MiB, exit code, stderr's last line); stdout is discarded.
+class Metered(NamedTuple):
+    """What the meter ``peak.py`` read of one command."""
 
-    The command runs under the meter ``peak.py`` (a standard-library process), which
-    times it and reads its peak RSS: read here, the peak would include this
-    benchmark's own memory at the fork (see ``peak.py``).
-    """
+    seconds: float  #: wall time (s)
+    cpu_seconds: float  #: user + system CPU time of the command and its threads (s)
+    peak_mib: float  #: peak resident memory (MiB)
+    code: int  #: exit code
+    message: str  #: stderr's last line
+
+
+def run_metered(command: list[str], env: dict[str, str] | None = None, cwd: Path | None = None) -> Metered:
+    """Run ``command`` (stdout discarded) under the meter ``peak.py``, a standard-library process that times it and
+    reads its peak RSS: read here, the peak would include this benchmark's own memory at the fork (see ``peak.py``).
+    env: the command's whole environment (None: this process's); cwd: its working folder (None: this one's)."""
     with tempfile.TemporaryDirectory() as folder:
         result = Path(folder) / "peak.json"
         process = subprocess.run([sys.executable, "-I", str(METER), str(result), *command],
-                                 stderr=subprocess.PIPE, stdout=subprocess.DEVNULL)
+                                 stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, env=env, cwd=cwd)
         measured = json.loads(result.read_text())
     stderr = process.stderr.decode()
-    return measured["seconds"], measured["peak_mib"], process.returncode, (stderr.strip().splitlines() or [""])[-1]
+    return Metered(measured["seconds"], measured["cpu_seconds"], measured["peak_mib"], process.returncode,
+                   (stderr.strip().splitlines() or [""])[-1])
+
+
+def run_process(command: list[str]) -> tuple[float, float, int, str]:
+    """Run ``command``: (wall seconds, peak RSS MiB, exit code, stderr's last line) of :func:`run_metered`."""
+    metered = run_metered(command)
+    return metered.seconds, metered.peak_mib, metered.code, metered.message
 
 
 def run_track(args: list[str]) -> tuple[float, float, int, str]:

@@ -1,4 +1,4 @@
-"""Run one command and write its wall time and peak resident memory to a JSON file (the benchmark's meter).
+"""Run one command and write its wall time, CPU time and peak resident memory to a JSON file (the benchmark's meter).
 
 Usage: ``python -I peak.py RESULT.json COMMAND...``; exits with the command's exit code.
 
@@ -21,14 +21,16 @@ import time
 
 
 def main() -> int:
-    """Run ``sys.argv[2:]``, write {"seconds": wall s, "peak_mib": peak RSS MiB} to ``sys.argv[1]``."""
+    """Run ``sys.argv[2:]``, write {"seconds": wall s, "cpu_seconds": user + system CPU s of the command and its
+    threads, "peak_mib": peak RSS MiB} to ``sys.argv[1]``."""
     result, command = sys.argv[1], sys.argv[2:]
     started = time.perf_counter()
     process = subprocess.Popen(command)
     _, status, usage = os.wait4(process.pid, 0)
     seconds = time.perf_counter() - started
     with open(result, "w") as out:
-        json.dump({"seconds": seconds, "peak_mib": usage.ru_maxrss / 1024.0}, out)
+        json.dump({"seconds": seconds, "cpu_seconds": usage.ru_utime + usage.ru_stime,
+                   "peak_mib": usage.ru_maxrss / 1024.0}, out)
     return os.waitstatus_to_exitcode(status)
 
 

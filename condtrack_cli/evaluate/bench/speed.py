@@ -1,14 +1,20 @@
-"""Speed against a plain OpenCV LK script (issue 13), the profile by stage, and batch throughput (issue 14)."""
+"""Speed against a plain OpenCV LK script (issue 13) and against an earlier commit (issue 45), the profile by stage,
+and batch throughput (issue 14)."""
 
 from __future__ import annotations
 
+import compileall
+import io
+import os
+import shutil
 import subprocess
 import sys
+import tarfile
 from pathlib import Path
 
 import numpy as np
 
-from condtrack_cli.evaluate.bench.common import run_process, run_track, write_queries
+from condtrack_cli.evaluate.bench.common import REPO, Metered, run_metered, run_process, run_track, write_queries
 from condtrack_cli.evaluate.bench.versus_lk import PAPER_CONFIG, versus_lk_queries
 from condtrack_cli.evaluate.groundtruth import load_gt_csv
 
@@ -31,6 +37,10 @@ FORWARD_ONLY = " --forward-only"
 
 #: The shared clip of the speed comparison on real frames (KITTI, 1242x375).
 SPEED_CLIP = "kt3dmoseg_seq005_clip01"
+
+#: Issue 45's bound on a change's speed: its whole-process wall time at most this many times an earlier commit's,
+#: in alternated runs on the same machine (:func:`versus_table`).
+VERSUS_BOUND = 1.15
 
 
 def synthetic_speed_scene(work: Path, n_points: int = 500, n_frames: int = 60,
@@ -77,17 +87,16 @@ def run_plain_lk(folder: Path, queries: Path, out: Path, threads: int | None = N
                        + ([str(threads)] if threads else []))
 
 
-def compile_package() -> None:
-    """Write the bytecode of ``condtrack_cli`` beside its sources, as pip does when it installs a package.
+def compile_package(package: Path = REPO / "condtrack_cli") -> None:
+    """Write the bytecode of the ``condtrack_cli`` folder ``package`` (this one) beside its sources, as pip does when
+    it installs a package.
 
     Where ``PYTHONDONTWRITEBYTECODE`` is set (as on the machines this benchmark was
     first run on), every ``condtrack track`` would otherwise compile the package's
     modules again at each start (bench/results.md, "Speed"), while the OpenCV
     script's imports (numpy, OpenCV) read their installed bytecode.
     """
-    import compileall
-
-    compileall.compile_dir(str(Path(__file__).resolve().parents[2]), quiet=1)
+    compileall.compile_dir(str(package), quiet=1)
 
 
 def speed_table(work: Path, shared: Path, repeats: int = 3, threads: int | None = None) -> list[str]:
@@ -150,6 +159,105 @@ def speed_table(work: Path, shared: Path, repeats: int = 3, threads: int | None 
             target = TIME_TARGETS.get(method.removesuffix(FORWARD_ONLY))
             check = "" if target is None else ("pass" if median / lk <= target else "FAIL") + f" (<= {target:g}x)"
             lines.append(f"| {method} | {median:.2f} | {median / lk:.1f} | {peaks[method]:.0f} | {check} |")
+            print(lines[-1], file=sys.stderr)
+        lines.append("")
+    return lines
+
+
+def frame_zero_scenes(work: Path, shared: Path) -> list[tuple[str, Path, Path]]:
+    """:func:`speed_scenes` with the queries at frame 0 only (issue 45 judges its speed bound so): a scene whose
+    queries span several frames gets a queries CSV of those at frame 0 beside its own."""
+    scenes = []
+    for title, folder, queries in speed_scenes(work, shared):
+        rows = np.loadtxt(queries, delimiter=",", skiprows=1, ndmin=2)
+        at_zero = rows[rows[:, 1] == 0]
+        if len(at_zero) < len(rows):
+            queries = queries.with_name(queries.name.removesuffix(".csv") + ".frame0.csv")
+            write_queries(at_zero, queries)
+            title += f", the {len(at_zero)} at frame 0"
+        scenes.append((title, folder, queries))
+    return scenes
+
+
+def extract_revision(revision: str, work: Path) -> tuple[str, Path]:
+    """(short hash, folder) of commit ``revision``'s ``condtrack_cli`` package, taken from this checkout's git history
+    into a folder of ``work`` (``folder / "condtrack_cli"``) and compiled as :func:`compile_package` does.
+    SystemExit with a one-line ``Error:`` where git is missing or ``revision`` names no commit of this checkout."""
+    def git(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", "-C", str(REPO), *args], capture_output=True, check=True)
+
+    try:
+        commit = git("rev-parse", "--verify", "--quiet", f"{revision}^{{commit}}").stdout.decode().strip()
+        archive = git("archive", "--format=tar", commit, "condtrack_cli").stdout
+    except FileNotFoundError:
+        raise SystemExit("Error: --speed-versus: git was not found (it reads the commit from this checkout)") from None
+    except subprocess.CalledProcessError:
+        raise SystemExit(f"Error: --speed-versus {revision!r}: no such commit with a condtrack_cli package in "
+                         f"{REPO}'s git history") from None
+    folder = work / f"versus-{commit[:12]}"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+        if hasattr(tarfile, "data_filter"):  # Python >= 3.11.4 (3.12 warns without a filter)
+            tar.extractall(folder, filter="data")
+        else:
+            tar.extractall(folder)
+    compile_package(folder / "condtrack_cli")
+    return commit[:12], folder
+
+
+def versus_row(method: str, earlier: list[Metered], this: list[Metered], lk_seconds: float) -> str:
+    """Markdown row of :func:`versus_table` for ``method`` from the rounds' runs of the earlier commit and of this
+    tree (the same rounds, in order) and the OpenCV script's median wall time (s) of the same rounds: the median
+    wall times, the median of the rounds' ratios (this / earlier; min-max), the median ratio of their CPU times,
+    both trees' ratio to the script, and the check of ``VERSUS_BOUND`` on the median of the rounds' ratios."""
+    wall = [b.seconds / a.seconds for a, b in zip(earlier, this)]
+    cpu = [b.cpu_seconds / a.cpu_seconds for a, b in zip(earlier, this)]
+    before, after = np.median([a.seconds for a in earlier]), np.median([b.seconds for b in this])
+    ratio = float(np.median(wall))
+    check = ("pass" if ratio <= VERSUS_BOUND else "FAIL") + f" (<= {VERSUS_BOUND:g}x)"
+    return (f"| {method} | {before:.2f} | {after:.2f} | {ratio:.3f} ({min(wall):.2f}-{max(wall):.2f}) "
+            f"| {np.median(cpu):.3f} | {before / lk_seconds:.2f} / {after / lk_seconds:.2f} | {check} |")
+
+
+def versus_table(work: Path, shared: Path, revision: str, rounds: int = 5) -> list[str]:
+    """Markdown: this tree's methods against commit ``revision``'s (issue 45's speed bound), whole processes.
+
+    Per scene of :func:`frame_zero_scenes`, ``rounds`` rounds each run the OpenCV script (``plain_lk.py``), then
+    each of ``SPEED_METHODS`` with both packages back to back (``condtrack track`` with ``PYTHONPATH`` on the
+    package, from ``work``: the earlier commit's first in odd rounds, this tree's first in even ones), each with its
+    default threads; the table gives :func:`versus_row` per method. Alternation, and the ratio taken within each
+    round, keep a machine whose speed drifts over minutes from tipping the comparison (bench/history.md, "Speed since
+    35ed7c7")."""
+    label, earlier = extract_revision(revision, work)
+    compile_package()
+    trees = {label: earlier, "this tree": REPO}
+    lines = [
+        f"Whole-process wall time of each method in this tree against commit {label}, {rounds} rounds run one after "
+        "the other (the plain OpenCV LK script, then each method by both packages back to back, in alternating "
+        "order), each with its default threads, the queries at frame 0; the ratio is taken within each round and "
+        f"issue 45's bound is its median <= {VERSUS_BOUND:g}x. CPU: user + system time of the process and its threads.",
+        "",
+    ]
+    for title, folder, queries in frame_zero_scenes(work, shared):
+        lk: list[float] = []
+        runs: dict[tuple[str, str], list[Metered]] = {(m, t): [] for m in SPEED_METHODS for t in trees}
+        for number in range(rounds):
+            lk.append(run_plain_lk(folder, queries, work / "versus.lk.csv")[0])
+            for method in SPEED_METHODS:
+                for tree in list(trees) if number % 2 == 0 else list(trees)[::-1]:
+                    metered = run_metered([sys.executable, "-m", "condtrack_cli", "track", str(folder), "-p",
+                                           str(queries), "-m", method, "-o", str(work / f"versus.{method}.csv"), "-q"],
+                                          env={**os.environ, "PYTHONPATH": str(trees[tree])}, cwd=work)
+                    if metered.code:
+                        raise SystemExit(f"Error: {method} of {tree} failed on {folder.name}: {metered.message}")
+                    runs[method, tree].append(metered)
+        lk_seconds = float(np.median(lk))
+        lines += [f"Scene: {title}; OpenCV LK script {lk_seconds:.2f} s (median).", "",
+                  f"| method | {label} wall (s) | this tree wall (s) | ratio, median of rounds (min-max) | CPU ratio "
+                  f"| × OpenCV LK ({label} / this tree) | check |", "|---|---|---|---|---|---|---|"]
+        for method in SPEED_METHODS:
+            lines.append(versus_row(method, runs[method, label], runs[method, "this tree"], lk_seconds))
             print(lines[-1], file=sys.stderr)
         lines.append("")
     return lines
