@@ -356,6 +356,43 @@ def test_least_residuals_are_the_measurements_residuals_whatever_points_are_meas
         np.testing.assert_array_equal(getattr(alone, field), getattr(whole, field)[some])
 
 
+def test_small_search_classes_are_measured_with_the_next_class_up():
+    """``_search_groups``: a class of gate sizes with fewer than ``_MIN_GROUP`` points joins the next class up (a
+    group's fixed cost outweighs the candidates its few points save); the last class stands alone; every known
+    point is in exactly one group, the unknown in none."""
+    from condtrack_cli.measure.ssd import _MIN_GROUP, _search_groups
+
+    settings = SSDSettings()  # classes' bounds 2, 3, 5, 8, 12, 16
+    half_sizes = np.array([2] * 5 + [3] * (_MIN_GROUP + 8) + [8] * 2 + [16] * 3)
+    known = np.ones(len(half_sizes), bool)
+    known[0] = False
+    groups = _search_groups(half_sizes, known, settings)
+    assert [sorted(set(half_sizes[g])) for g in groups] == [[2, 3], [8, 16]]
+    assert np.array_equal(np.sort(np.concatenate(groups)), np.arange(1, len(half_sizes)))
+    many = _search_groups(np.full(_MIN_GROUP, 2), np.ones(_MIN_GROUP, bool), settings)
+    assert [len(g) for g in many] == [_MIN_GROUP]
+
+
+def test_a_point_measured_with_a_larger_class_is_measured_in_its_own_gate():
+    """A point whose few-point class joins a larger one is searched in a larger square, and still measured in its own
+    gate: the same integer minimum, z and tests as alone, its residual within the float32 cross term's rounding."""
+    rng = np.random.default_rng(11)
+    frame0, frame1, _ = downsampled_pair("camera.png", (3, 2), 2, 2.0, rng)
+    xy = corners(frame0, 24)[:45]
+    templates = extract_templates(frame0, xy, 11)
+    predicted = xy + rng.uniform(-1.5, 1.5, xy.shape)
+    settings = SSDSettings()
+    gates = np.repeat(np.eye(2)[None] * (3.0**2 / settings.gamma), len(xy), axis=0)  # half-side 3 ...
+    gates[:5] = np.eye(2) * (2.0**2 / settings.gamma)  # ... and 2 for five points: their class joins the 3's
+    together = measure(frame1, templates, predicted, gates, settings, 2.0)
+    for p in range(5):
+        alone = measure(frame1, templates[p : p + 1], predicted[p : p + 1], gates[p : p + 1], settings, 2.0)
+        assert alone.informative[0] == together.informative[p]
+        np.testing.assert_allclose(alone.z[0], together.z[p], atol=1e-6)
+        np.testing.assert_allclose(alone.R[0], together.R[p], rtol=1e-5, atol=1e-9)
+        assert alone.residual[0] == pytest.approx(together.residual[p], rel=1e-5)
+
+
 # --- occlusion, ambiguity and the gate ---------------------------------------------------------
 
 

@@ -72,6 +72,8 @@ _NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1,
 
 #: Most points per group of the search: bounds the (P, G, G) temporaries (about 100 kB per point at the largest gate).
 _CHUNK = 512
+#: Fewest points of a search group (:func:`_search_groups`); a class with fewer is measured with the next one up.
+_MIN_GROUP = 32
 
 
 def _half_sizes(gate_cov: np.ndarray, settings: SSDSettings) -> np.ndarray:
@@ -169,15 +171,23 @@ def _search_groups(half_sizes: np.ndarray, known: np.ndarray, settings: SSDSetti
 
     The classes' upper bounds grow by half from ``search_min``; a group's surfaces cover its
     largest gate, so the group computes at most about 1.5^2 as many candidates as its gates hold,
-    instead of every point paying for the largest gate of the frame.
+    instead of every point paying for the largest gate of the frame. A class of fewer than
+    ``_MIN_GROUP`` points is measured with the next class up (the last class as it is): a group's
+    fixed cost, about 300 numpy calls whatever its points (1.5-3 ms), is that of measuring some 30
+    points, more than a few points save in candidates (bench/history.md, "Tenth round").
     """
     bounds = [settings.search_min]
     while bounds[-1] < settings.search_max:
         bounds.append(min(int(np.ceil(1.5 * bounds[-1])), settings.search_max))
     classes = np.searchsorted(bounds, half_sizes)
     groups = []
+    carried = np.zeros(0, np.intp)  # the smaller classes' few points, measured with the next class up
     for index in range(len(bounds)):
-        members = np.flatnonzero(known & (classes == index))
+        members = np.concatenate([carried, np.flatnonzero(known & (classes == index))])
+        if len(members) < _MIN_GROUP and index < len(bounds) - 1:
+            carried = members
+            continue
+        carried = np.zeros(0, np.intp)
         groups += [members[start : start + _CHUNK] for start in range(0, len(members), _CHUNK)]
     return groups
 
