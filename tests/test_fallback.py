@@ -158,6 +158,16 @@ def test_a_point_both_searches_find_is_found_by_its_last_patch():
     np.testing.assert_array_equal(reference.templates, retaken)
 
 
+def _match_one_attempt(reference, index, tried, centre, frame, predicted, s_pred, gate, valid, shown, shift,
+                       anchor=False, reach=None):
+    """The re-acquisition's match of points ``tried`` around ``centre`` alone (one ``_attempt``, its fit bound
+    ``REACQUIRE_FIT``), identity R_used; returns and updates as ``_match_attempts``."""
+    attempt = reference._attempt(index, tried, centre, frame, predicted, s_pred, gate, anchor)
+    return reference._match_attempts(index, [attempt], frame, predicted, s_pred, gate,
+                                     np.repeat(np.eye(2)[None], len(index), 0), valid, shown, shift, REACQUIRE_FIT,
+                                     reach)
+
+
 def test_a_first_patch_match_is_weighed_against_the_first_patch_where_the_gate_matched():
     """The first patch's match around the truth (frame 1 = frame 0 moved by JUMP) is used although the gate's match,
     made with a reference re-taken on an occluder, fits that reference perfectly (residual 0 at the points' frame 0
@@ -169,9 +179,8 @@ def test_a_first_patch_match_is_weighed_against_the_first_patch_where_the_gate_m
     gate = Measurement(xy.copy(), np.repeat(np.eye(2)[None], n, 0), np.zeros(n), np.ones(n, bool), np.zeros(n))
     for anchor in (True, False):
         valid, shown, shift = np.zeros(n, bool), np.zeros(n, bool), np.zeros((n, 2))
-        measured, _ = reference._match_around(index, np.arange(n), xy + JUMP, frame1, xy, s_pred, gate,
-                                              np.repeat(np.eye(2)[None], n, 0), valid, shown, shift, REACQUIRE_FIT,
-                                              anchor)
+        measured, _ = _match_one_attempt(reference, index, np.arange(n), xy + JUMP, frame1, xy, s_pred, gate, valid,
+                                         shown, shift, anchor)
         if anchor:
             assert valid.mean() >= 0.8
             np.testing.assert_allclose(measured.z[valid], (xy + JUMP)[valid], atol=0.25)
@@ -233,14 +242,12 @@ def test_a_lost_point_never_matched_is_not_searched_for(monkeypatch):
     gate = Measurement(xy.copy(), np.repeat(np.eye(2)[None], n, 0), np.full(n, np.nan), np.zeros(n, bool),
                        np.full(n, np.nan))
     valid, shown, shift = np.zeros(n, bool), np.zeros(n, bool), np.zeros((n, 2))
-    reference._match_around(index, np.flatnonzero(never), (xy + JUMP)[never], frame1, xy, s_pred, gate,
-                            np.repeat(np.eye(2)[None], n, 0), valid, shown, shift, REACQUIRE_FIT,
-                            reach=REACQUIRE_REACH)
+    _match_one_attempt(reference, index, np.flatnonzero(never), (xy + JUMP)[never], frame1, xy, s_pred, gate, valid,
+                       shown, shift, reach=REACQUIRE_REACH)
     assert not valid.any()
     reference.usual[never] = 1e9  # the same matches with a yardstick: found
-    reference._match_around(index, np.flatnonzero(never), (xy + JUMP)[never], frame1, xy, s_pred, gate,
-                            np.repeat(np.eye(2)[None], n, 0), valid, shown, shift, REACQUIRE_FIT,
-                            reach=REACQUIRE_REACH)
+    _match_one_attempt(reference, index, np.flatnonzero(never), (xy + JUMP)[never], frame1, xy, s_pred, gate, valid,
+                       shown, shift, reach=REACQUIRE_REACH)
     assert valid[never].mean() >= 0.8
 
 

@@ -384,14 +384,11 @@ class ReferenceMatcher:
 
     def _match_around(self, index: np.ndarray, tried: np.ndarray, centre: np.ndarray, frame: Frame,
                       predicted: np.ndarray, s_pred: np.ndarray, m: Measurement, r_used: np.ndarray,
-                      valid: np.ndarray, shown: np.ndarray, shift: np.ndarray,
-                      fit_bound: float | None = None, anchor: bool = False,
-                      reach: int | None = None) -> tuple[Measurement, np.ndarray]:
-        """:meth:`_fallback` around one (n, 2) ``centre`` per point of ``tried``; returns and updates as it does:
-        :meth:`_match_attempts` of the one :meth:`_attempt`."""
-        attempt = self._attempt(index, tried, centre, frame, predicted, s_pred, m, anchor)
-        return self._match_attempts(index, [attempt], frame, predicted, s_pred, m, r_used, valid, shown, shift,
-                                    fit_bound, reach)
+                      valid: np.ndarray, shown: np.ndarray, shift: np.ndarray) -> tuple[Measurement, np.ndarray]:
+        """:meth:`_fallback` around one (n, 2) ``centre`` per point of ``tried``, with the reference in the gate;
+        returns and updates as it does: :meth:`_match_attempts` of the one :meth:`_attempt`."""
+        attempt = self._attempt(index, tried, centre, frame, predicted, s_pred, m, False)
+        return self._match_attempts(index, [attempt], frame, predicted, s_pred, m, r_used, valid, shown, shift)
 
     def _attempt(self, index: np.ndarray, tried: np.ndarray, centre: np.ndarray, frame: Frame,
                  predicted: np.ndarray, s_pred: np.ndarray, m: Measurement, anchor: bool) -> _Attempt:
