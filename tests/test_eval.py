@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
+from conftest import SAMPLES
 
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.evaluate import (
@@ -826,3 +827,48 @@ def test_bench_synthetic_checks_average_aj_and_oa_over_the_scenes_that_have_them
     checks = _synthetic_checks({"occlusion": scene(0.80), "fast": scene(0.90), "nonrigid_0": scene(None)}, ("auto",))
     assert checks == ["- [x] pass: auto mean <δ_avg 0.950 >= 0.88", "- [x] pass: auto mean AJ 0.850 >= 0.75 (2 scenes)",
                       "- [x] pass: auto mean OA 0.950 >= 0.90 (2 scenes)"]
+
+
+def test_bench_seed_spread_means_the_seeds_and_keeps_a_missing_metric_missing():
+    """``--seeds``' aggregation (``bench/seeds.py``): each metric's mean over the seeds, None where any seed has
+    none (a check on it then does not pass by a partial mean); a cell is 'mean (min-max)'."""
+    from condtrack_cli.evaluate.bench.seeds import mean_metrics, spread_cell
+
+    runs = [{"delta_avg": 0.80, "cov95": 0.90, "AJ": None}, {"delta_avg": 0.70, "cov95": 0.80, "AJ": 0.5}]
+    assert mean_metrics(runs) == pytest.approx({"delta_avg": 0.75, "cov95": 0.85, "AJ": None})
+    assert mean_metrics(runs)["AJ"] is None
+    assert spread_cell([0.841, 0.786, 0.836]) == "0.821 (0.786-0.841)"
+
+
+def test_bench_seed_spread_runs_each_seed_and_judges_the_checks_on_the_mean(tmp_path):
+    """``seed_spread_table`` on a one-set shared folder (the shipped occlusion sample, named as a face clip): LK,
+    chained DIS and clf once, auto and cnlf once per seed with that seed (their track files differ, the CLF has
+    none per seed), and issue 45's face checks on the means; ``--seeds 0`` is a usage error."""
+    import shutil
+    import subprocess
+    import sys
+
+    import h5py
+
+    from condtrack_cli.evaluate.bench.seeds import seed_spread_table
+
+    shared = tmp_path / "shared"
+    shutil.copytree(SAMPLES / "occlusion", shared / "dudek_zz")
+    work = tmp_path / "work"
+    work.mkdir()
+    lines = seed_spread_table(work, shared, 2, max_points=6)
+    row = next(line for line in lines if line.startswith("| dudek_zz |"))
+    cells = [cell.strip() for cell in row.strip("|").split("|")]
+    assert cells[1] == "6" and len(cells) == 7
+    for cell in cells[5:]:  # auto, cnlf: mean (min-max) of two seeds
+        mean, low, high = (float(v) for v in cell.replace("(", " ").replace(")", " ").replace("-", " ").split())
+        assert low <= mean <= high and mean == pytest.approx((low + high) / 2, abs=1e-3)
+    with h5py.File(work / "seeds_dudek_zz.s0.cnlf.h5") as first, h5py.File(work / "seeds_dudek_zz.s1.cnlf.h5") as second:
+        assert not np.array_equal(first["tracks/xy"][...], second["tracks/xy"][...], equal_nan=True)
+    assert (work / "seeds_dudek_zz.clf.h5").is_file() and not (work / "seeds_dudek_zz.s0.clf.h5").exists()
+    checks = [line for line in lines if line.startswith("- [")]
+    assert any("dudek_zz: auto" in line and ">= LK" in line for line in checks)
+    assert any(line.endswith("+ 0.06") and "face mean of auto" in line for line in checks)
+    result = subprocess.run([sys.executable, "-m", "condtrack_cli.evaluate.bench", "--seeds", "0", "--work",
+                             str(tmp_path / "x")], capture_output=True, text=True)
+    assert result.returncode == 2 and "--seeds: expected a positive integer, got 0" in result.stderr

@@ -50,6 +50,7 @@ from pathlib import Path
 from condtrack_cli.evaluate.bench.accuracy import accuracy_table, calibration_table, support_table
 from condtrack_cli.evaluate.bench.common import REPO
 from condtrack_cli.evaluate.bench.hard import REPORT_SEEDS, TUNE_SEEDS, hard_cases_table
+from condtrack_cli.evaluate.bench.seeds import seed_spread_table
 from condtrack_cli.evaluate.bench.speed import batch_table, memory_table, profile_table, speed_table, versus_table
 from condtrack_cli.evaluate.bench.versus_lk import (
     COLUMNS, NONRIGID_REPORT_SEEDS, NONRIGID_TUNE_SEEDS, PAPER_METHODS, versus_lk_section,
@@ -124,28 +125,41 @@ def main() -> None:
                         help="folder of the real sets for the section against OpenCV LK")
     parser.add_argument("--versus-lk", action="store_true",
                         help="only print the section against OpenCV LK (issue 11); results.md is not written")
+    parser.add_argument("--seeds", type=int, metavar="N",
+                        help="only print auto's and cnlf's <δ_avg on the real sets at seeds 0 .. N-1 (mean, min-max), "
+                             "LK, chained DIS and clf once, and issue 45's real-video checks on the means")
     parser.add_argument("--hard", choices=("tune", "report"),
                         help="only print issue 31's hard cases on the tuning or the reporting seeds")
     parser.add_argument("--paper", default=",".join(PAPER_METHODS), metavar="METHODS",
                         help="with --versus-lk: methods run with configs/paper.yaml as extra columns, comma-separated "
                              "(issue 29; '' for none)")
     parser.add_argument("--lk-points", type=int, default=300,
-                        help="with --versus-lk: most queries per real set (300; fewer to bound the paper preset's time)")
+                        help="with --versus-lk or --seeds: most queries per real set (300; fewer to bound the paper "
+                             "preset's time)")
     parser.add_argument("--no-synthetic", action="store_true", help="with --versus-lk: the real sets only")
     parser.add_argument("--methods", default=",".join(COLUMNS), metavar="METHODS",
                         help=f"with --versus-lk: the columns to run, comma-separated among {','.join(COLUMNS)} (all)")
     parser.add_argument("--sets", metavar="GLOBS",
-                        help="with --versus-lk: only the real sets and synthetic scenes whose names match one of these "
+                        help="with --versus-lk or --seeds: only the real sets and synthetic scenes whose names match one of these "
                              "comma-separated globs (e.g. 'dudek_*,nonrigid_*')")
     parser.add_argument("--nonrigid", choices=("tune", "report"), default="report",
                         help="with --versus-lk: the nonrigid scene's tuning or reporting seeds in the synthetic table")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="with --versus-lk or --hard: a config override for every condtrack run (a variant's numbers)")
+                        help="with --versus-lk, --seeds or --hard: a config override for every condtrack run (a "
+                             "variant's numbers)")
     args = parser.parse_args()
     if args.hard:
         args.work.mkdir(parents=True, exist_ok=True)
         extra = tuple(arg for override in args.set for arg in ("--set", override))
         print("\n".join(hard_cases_table(args.work, TUNE_SEEDS if args.hard == "tune" else REPORT_SEEDS, extra)))
+        return
+    if args.seeds is not None:
+        if args.seeds < 1:
+            parser.error(f"--seeds: expected a positive integer, got {args.seeds}")
+        args.work.mkdir(parents=True, exist_ok=True)
+        extra = tuple(arg for override in args.set for arg in ("--set", override))
+        sets = tuple(pattern for pattern in args.sets.split(",") if pattern) if args.sets else None
+        print("\n".join(seed_spread_table(args.work, args.shared_data, args.seeds, extra, sets, args.lk_points)))
         return
     if args.versus_lk:
         args.work.mkdir(parents=True, exist_ok=True)

@@ -146,12 +146,12 @@ def real_video_table(work: Path, shared: Path, max_points: int = 300, extra: tup
         mean = {c: float(np.mean([_value(per_set[n], c) for n in kitti])) for c in columns}
         lines.append("| KITTI mean | | " + " | ".join(f"{mean[c]:.3f}" for c in columns) + " |")
     return lines + ["", "Done-when checks of issues 11 and 45 (real video; those whose columns ran):", ""] + \
-        _real_video_checks(per_set, columns) + [
+        real_video_checks(per_set, columns) + [
         "", "Coverage of each row's predictive distribution on the same runs (issues 12 and 27; `condtrack eval` keys):", ""
     ] + coverage_table(per_set, "set", paper) + [""] + group_tables(per_set, points, REAL_GROUPS)
 
 
-def _real_video_checks(per_set: dict, columns: tuple[str, ...]) -> list[str]:
+def real_video_checks(per_set: dict, columns: tuple[str, ...]) -> list[str]:
     """Issue 11's checks and issue 45's targets on the real sets, each where its columns ran and its sets are."""
     def ran(*needed: str) -> bool:
         return all(c in columns for c in needed)
