@@ -67,7 +67,8 @@ INTRO = [
     "commit they were measured at. `make bench` (`python -m condtrack_cli.evaluate.bench --out bench/results.md`) writes",
     "the sections Accuracy, Covariance calibration, Speed, Profile, Memory by clip length, Many clips and Against",
     "OpenCV LK and chained DIS at one commit, and keeps the other sections of this file (the narrower runs pasted in: Calibration,",
-    "Student-t; Hard cases; The paper preset). The sections below were measured at different commits, each given.",
+    "Student-t; Seed spread; Hard cases; The paper preset). The sections below were measured at different commits, "
+    "each given.",
     "Earlier measurements and the ideas tried and not kept: `bench/history.md`, by the same section titles.",
 ]
 
