@@ -18,6 +18,7 @@ from condtrack_cli.filters.reference import (
     REACQUIRE_FIT,
     REACQUIRE_FRAMES,
     REACQUIRE_REACH,
+    REACQUIRE_TEXTURE,
     HalfFrame,
     ReferenceMatcher,
     coarse_centres,
@@ -249,6 +250,26 @@ def test_a_lost_point_never_matched_is_not_searched_for(monkeypatch):
     _match_one_attempt(reference, index, np.flatnonzero(never), (xy + JUMP)[never], frame1, xy, s_pred, gate, valid,
                        shown, shift, reach=REACQUIRE_REACH)
     assert valid[never].mean() >= 0.8
+
+
+def test_a_lost_point_whose_reference_is_about_as_flat_as_the_noise_is_not_searched_for(monkeypatch):
+    """Re-acquisition's skip (``REACQUIRE_TEXTURE``): a lost point whose reference's texture (its cost against a flat
+    patch) is at most ``REACQUIRE_TEXTURE`` times the noise's m 2 sigma^2 is not searched for; one just above the
+    bound, and the textured points, are searched for and found as in the tests above. The photograph's corners are
+    far above the bound (a flat patch is not a corner)."""
+    searched_for = _counted_searches(monkeypatch)
+    frame0, frame1, xy, reference, index, s_pred = _started()
+    assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
+    n = len(xy)
+    bound = REACQUIRE_TEXTURE * reference._noise_ssd()
+    assert (reference.flat_cost > 10 * bound).all()
+    flat, above = np.arange(n) % 3 == 0, np.arange(n) % 3 == 1
+    reference.flat_cost[flat] = bound
+    reference.flat_cost[above] = np.nextafter(bound, np.inf)
+    found = reference.measure_in_gate(index, frame1, xy, s_pred, frame0, xy, np.zeros(n, bool), np.full(n, 3))
+    assert searched_for == [2 * (n - flat.sum())]  # by their last and their first patch
+    assert not found.valid[flat].any()
+    assert found.valid[~flat].mean() >= 0.8 and found.valid[above].mean() >= 0.8
 
 
 def test_lucas_kanade_centres_at_half_resolution_follow_the_jump():
