@@ -141,8 +141,8 @@ def main() -> None:
     parser.add_argument("--methods", default=",".join(COLUMNS), metavar="METHODS",
                         help=f"with --versus-lk: the columns to run, comma-separated among {','.join(COLUMNS)} (all)")
     parser.add_argument("--sets", metavar="GLOBS",
-                        help="with --versus-lk or --seeds: only the real sets and synthetic scenes whose names match one of these "
-                             "comma-separated globs (e.g. 'dudek_*,nonrigid_*')")
+                        help="with --versus-lk or --seeds: only the real sets and synthetic scenes whose names match "
+                             "one of these comma-separated globs (e.g. 'dudek_*,nonrigid_*')")
     parser.add_argument("--nonrigid", choices=("tune", "report"), default="report",
                         help="with --versus-lk: the nonrigid scene's tuning or reporting seeds in the synthetic table")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",

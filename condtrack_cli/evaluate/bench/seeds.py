@@ -42,8 +42,8 @@ def seed_spread_table(work: Path, shared: Path, seeds: int, extra: tuple[str, ..
     (:func:`versus_lk_queries`); then issue 45's real-video checks on those means (the camel's cov95 too: the mean
     of its coverage). extra: arguments added to every ``condtrack track``. Track files: ``work``/seeds_<set>.s<seed>."""
     columns = FIXED_COLUMNS + SEEDED_METHODS
-    lines = [f"<δ_avg; {', '.join(SEEDED_METHODS)}: mean (min-max) over seeds 0-{seeds - 1} (`condtrack track --seed S`); "
-             f"{', '.join(FIXED_COLUMNS)}: once (they draw nothing).", "",
+    lines = [f"<δ_avg; {', '.join(SEEDED_METHODS)}: mean (min-max) over seeds 0-{seeds - 1} "
+             f"(`condtrack track --seed S`); {', '.join(FIXED_COLUMNS)}: once (they draw nothing).", "",
              "| set | points | " + " | ".join(columns) + " |", "|---|---|" + "---|" * len(columns)]
     per_set = {}
     folders = sorted(shared.glob("*/")) if shared.is_dir() else []
@@ -55,13 +55,14 @@ def seed_spread_table(work: Path, shared: Path, seeds: int, extra: tuple[str, ..
         results = score_versus_lk(folder, queries, truth, work, f"seeds_{folder.name}", extra, (), FIXED_COLUMNS)
         drawn = [score_versus_lk(folder, queries, truth, work, f"seeds_{folder.name}.s{seed}",
                                  extra + ("--seed", str(seed)), (), SEEDED_METHODS) for seed in range(seeds)]
-        cells = [fmt(results[c][0]["delta_avg"]) if results[c][0] else f"failed: {results[c][1]}" for c in FIXED_COLUMNS]
+        cells = [fmt(results[c][0]["delta_avg"]) if results[c][0] else f"failed: {results[c][1]}"
+                 for c in FIXED_COLUMNS]
         for method in SEEDED_METHODS:
             runs = [run[method] for run in drawn]
-            failed = [seconds for metrics, seconds in runs if metrics is None]
-            if failed:
-                results[method] = (None, failed[0])
-                cells.append(f"failed: {failed[0]}")
+            failures = [message for metrics, message in runs if metrics is None]  # (None, message) where one failed
+            if failures:
+                results[method] = (None, failures[0])
+                cells.append(f"failed: {failures[0]}")
                 continue
             results[method] = (mean_metrics([metrics for metrics, _ in runs]),
                                float(np.mean([seconds for _, seconds in runs])))
@@ -72,4 +73,5 @@ def seed_spread_table(work: Path, shared: Path, seeds: int, extra: tuple[str, ..
     if not per_set:
         return [f"{shared} holds no set with a tracks.csv" + (f" matching {','.join(sets)}" if sets else "")
                 + ": no seed-spread table."]
-    return lines + ["", "Issue 45's real-video checks on the mean over the seeds:", ""] + real_video_checks(per_set, columns)
+    checks = real_video_checks(per_set, columns)
+    return lines + ["", "Issue 45's real-video checks on the mean over the seeds:", ""] + checks
