@@ -755,14 +755,13 @@ def test_bench_speed_versus_refuses_what_names_no_commit(tmp_path):
 def test_bench_speed_versus_runs_the_commit_s_own_package(tmp_path):
     """``extract_revision`` puts the commit's ``condtrack_cli`` in a folder of its own, its files those of git's
     history; with ``PYTHONPATH`` on that folder, ``python -m condtrack_cli`` imports it, not this tree's."""
+    import shutil
     import subprocess
     import sys
     from pathlib import Path
 
     from condtrack_cli.evaluate.bench.common import REPO
     from condtrack_cli.evaluate.bench.speed import extract_revision
-
-    import shutil
 
     if shutil.which("git") is None or subprocess.run(["git", "-C", str(REPO), "rev-parse", "HEAD"],
                                                      capture_output=True).returncode:

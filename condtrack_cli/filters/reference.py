@@ -92,8 +92,9 @@ REACQUIRE_REACH = 3
 #: A lost point's match there is used only where it fits the reference within this many times its usual residual
 REACQUIRE_FIT = 2.5
 #: A lost point is searched for only where its reference's texture, its cost against a flat patch (``flat_cost``), is
-#: above this many times the noise's m 2 sigma^2: the search compares its patch with 6 561 candidates, and a patch
-#: about as flat as the noise is matched as well by any of them (bench/history.md, "Eleventh round")
+#: above this many times the noise's m 2 sigma^2: the search compares its patch with every candidate of its square,
+#: (2 ``COARSE_REACH`` + 1)^2 of them, and a patch about as flat as the noise is matched as well by any flat one
+#: (bench/history.md, "Eleventh round")
 REACQUIRE_TEXTURE = 3.0
 #: ``warp_reference``: the warp is applied only where it moves some pixel of the patch by at least this much (px) ...
 WARP_REACH = 0.5
@@ -505,9 +506,9 @@ class ReferenceMatcher:
         A point with no usual residual (never matched since its query: a patch flatter than the noise, a query on
         what is already covered) is not searched for: its yardstick is NaN, so that no match could pass the
         ``REACQUIRE_FIT`` bound (how many of KITTI's searches that was: bench/history.md, "Ninth round"). Nor is a
-        point whose reference is about as flat as the noise (``REACQUIRE_TEXTURE``): on the 640 x 480 speed scene
-        those were 1 030 of `clf`'s 1 348 searches (2 of its 4 finds); on the shared real sets (`auto`, `clf`,
-        `cnlf`) 127 of 24 375, none of them one of the 526 finds."""
+        point whose reference is about as flat as the noise (``REACQUIRE_TEXTURE``): most of the 640 x 480 speed
+        scene's searches, a few of the shared real sets' and none of their finds (counted with a one-off log:
+        bench/history.md, "Eleventh round")."""
         lost = lost[np.isfinite(self._yardstick(index[lost]))
                     & (self.flat_cost[index[lost]] > REACQUIRE_TEXTURE * self._noise_ssd())]
         if not lost.size:
