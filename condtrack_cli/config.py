@@ -220,7 +220,7 @@ def parse_yaml(text: str) -> Any:
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
-    """``'motion.levels=3'`` -> (['motion', 'levels'], 3); the value is read as YAML."""
+    """``'measure.template=15'`` -> (['measure', 'template'], 15); the value is read as YAML."""
     key, sep, value = text.partition("=")
     path = key.strip().split(".")
     if not sep or not all(path):
@@ -356,7 +356,7 @@ def default_yaml() -> str:
 
 
 def config_keys() -> list[str]:
-    """Every key of the default configuration, dotted (``motion.levels``), in its order: what ``--set`` completes."""
+    """Every key of the default configuration, dotted (``measure.template``), in its order: what ``--set`` completes."""
 
     def walk(mapping: dict, prefix: str) -> list[str]:
         return [key for name, value in mapping.items()

@@ -6,13 +6,19 @@ validated settings and the objects it works with (``pipeline.py`` builds them).
 
 from __future__ import annotations
 
-from typing import ClassVar
+import types
+import typing
+from typing import Any, ClassVar
 
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, model_validator
 
 
 class StageSettings(BaseModel):
     """Base of every stage's settings: frozen, strict types, unknown keys and non-finite numbers refused.
+
+    A whole number written with an exponent (``1e3``, which YAML, ``--set`` and
+    Python read as the float 1000.0) is taken for an integer key; a fractional
+    one (``2.5``) is still refused there.
 
     ``frame_windows`` names the fields that are window sides in pixels and must
     fit in the frame; :meth:`condtrack_cli.config.Config.check_fits_frame` checks
@@ -27,3 +33,29 @@ class StageSettings(BaseModel):
     frame_windows: ClassVar[tuple[str, ...]] = ()
     filter_sections: ClassVar[tuple[str, ...]] = ()
     covariance: ClassVar[bool] = True
+
+    @model_validator(mode="before")
+    @classmethod
+    def _whole_floats_as_integers(cls, data: Any) -> Any:
+        """``data`` with every finite whole float given to an integer field made an int (class docstring)."""
+        if not isinstance(data, dict):
+            return data
+        return {key: int(value) if _is_whole_float(value) and _takes_integer(cls, key) else value
+                for key, value in data.items()}
+
+
+def _is_whole_float(value: Any) -> bool:
+    """True for a finite float with no fractional part (``1e3``), False for anything else (bools and ints too)."""
+    return isinstance(value, float) and value.is_integer()
+
+
+def _takes_integer(model: type[BaseModel], key: Any) -> bool:
+    """True where ``model``'s field ``key`` is an ``int`` or an optional one (``int | None``) and takes no float."""
+    field = model.model_fields.get(key) if isinstance(key, str) else None
+    if field is None:
+        return False
+    annotation = field.annotation
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        members = set(typing.get_args(annotation))
+        return int in members and float not in members
+    return annotation is int

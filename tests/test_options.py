@@ -45,6 +45,21 @@ def test_a_float_with_an_exponent_is_a_float_in_set_and_yaml(text, value):
     assert parsed == value and type(parsed) is type(value)
 
 
+def test_a_whole_number_with_an_exponent_is_taken_for_an_integer_key(tmp_path):
+    """``1e3`` particles is 1000 particles (it failed as "not a valid integer" at 381a548); ``2.5`` is still refused,
+    and so is a float for a boolean key."""
+    loaded = load_config(None, ["filter.cnlf.particles=1e3", "motion.finest_scale=1e0"])
+    particles, finest = loaded.filters["cnlf"].particles, loaded.stage("motion").settings.finest_scale
+    assert (particles, type(particles), finest, type(finest)) == (1000, int, 1, int)
+    config = tmp_path / "c.yaml"
+    config.write_text("measure:\n  template: 1.5e1\n")
+    template = load_config(config).stage("measure").settings.template
+    assert (template, type(template)) == (15, int)
+    for refused, hint in (("filter.cnlf.particles=2.5", "valid integer"), ("filter.clf.reference_update=1e0", "valid boolean")):
+        with pytest.raises(CondtrackError, match=hint):
+            load_config(None, [refused])
+
+
 def test_exponent_floats_reach_the_settings_from_set_a_file_and_max_std(tmp_path, shifted_folder):
     assert load_config(None, ["measure.r_floor=1e-3"]).stage("measure").settings.r_floor == 1e-3
     config = tmp_path / "c.yaml"

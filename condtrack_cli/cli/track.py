@@ -59,7 +59,7 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 @click.option("--untrackable", type=click.Choice(["keep", "drop", "error"]),
               help="Queries whose Shi-Tomasi score is at or below detect.min_eigenvalue: keep (tracked, with a warning; "
                    "default), drop (not tracked) or error (detect.untrackable).")
-@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", shell_complete=_complete_key, help="Override one config value, e.g. motion.levels=3 (repeatable).")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE", shell_complete=_complete_key, help="Override one config value, e.g. measure.template=15 (repeatable).")
 @click.option("--from-list", "list_path", type=click.Path(dir_okay=False), help="Batch: a file with one INPUT per line.")
 @click.option("--out-dir", type=click.Path(file_okay=False), help="Batch: folder of the outputs (created if missing), one <input name>.<format> each, and manifest.jsonl.")
 @click.option("--format", "batch_format", type=click.Choice(["h5", "csv"]), default="h5", show_default=True, help="Batch: output format.")
