@@ -49,6 +49,7 @@ from condtrack_cli.filters.base import Tracker
 from condtrack_cli.detect.trackability import Aperture
 from condtrack_cli.filters.calibration import ErrorModel
 from condtrack_cli.filters.clf import local_dynamics
+from condtrack_cli.filters.draws import PROPOSAL, RESAMPLING, START, PointDraws
 from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, matvec2, sample_gauss2
 from condtrack_cli.filters.reference import ReferenceMatcher
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise, sum_over_particles
@@ -102,13 +103,13 @@ def mixture_moments(log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray) -> tuple[n
 
 
 def propagate(
-    rng: np.random.Generator, log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray, z: np.ndarray, R: np.ndarray,
+    normals: np.ndarray, log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray, z: np.ndarray, R: np.ndarray,
     valid: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Draw the new particles from the optimal proposal and update the weights (Fig. 2).
 
-    log_w (n, N) normalised; mu (n, N, 2) = x + P(x) theta(x); Q (n, N, 2, 2);
-    z (n, 2); R (n, 2, 2) finite; valid (n,): where False, the proposal is the
+    normals (n, N, 2): standard normal draws; log_w (n, N) normalised; mu (n, N, 2) = x + P(x) theta(x);
+    Q (n, N, 2, 2); z (n, 2); R (n, 2, 2) finite; valid (n,): where False, the proposal is the
     dynamics N(mu, Q) and the weights stay. Returns particles (n, N, 2) and
     normalised log-weights (n, N).
     """
@@ -118,23 +119,25 @@ def propagate(
     m = matvec2(C, matvec2(q_inv, mu) + matvec2(r_inv, z))  # eq. (11): m = C (Q^-1 mu + R^-1 z)
     unmeasured = ~valid
     m[unmeasured], C[unmeasured] = mu[unmeasured], Q[unmeasured]
-    particles = sample_gauss2(rng, m, C)
+    particles = sample_gauss2(m, C, normals)
     with np.errstate(invalid="ignore"):  # the rows without a measurement (z NaN or outside the gate) are not used
         log_like = log_gauss2(z, mu, R + Q)  # eq. (4): p(z | x_{k-1}) = N(z; mu, R + Q)
     return particles, normalise(np.where(valid[:, None], log_w + log_like, log_w))
 
 
-def resample(rng: np.random.Generator, particles: np.ndarray, log_w: np.ndarray,
+def resample(uniform: np.ndarray, particles: np.ndarray, log_w: np.ndarray,
              settings: CNLFSettings) -> tuple[np.ndarray, np.ndarray]:
     """Resample in place the rows of particles (n, N, 2) and normalised log-weights (n, N) whose effective sample
-    size 1 / sum w^2 is below ess_fraction N: their particles are drawn among their own (``settings.resampling``)
-    and their weights reset to uniform; the other rows are left as they are (each particle its own parent).
+    size 1 / sum w^2 is below ess_fraction N: their particles are drawn among their own (``settings.resampling``,
+    with the rows' (n,) ``uniform`` draws in [0, 1)) and their weights reset to uniform; the other rows are left
+    as they are (each particle its own parent).
     Returns those rows (m,) and their ancestor indices (m, N).
     """
     count = log_w.shape[1]
     weights = np.exp(log_w)
     degenerate = np.flatnonzero(1.0 / (weights**2).sum(axis=1) < settings.ess_fraction * count)
-    picks = RESAMPLERS[settings.resampling](rng, weights[degenerate]) if degenerate.size else np.zeros((0, count), int)
+    picks = (RESAMPLERS[settings.resampling](weights[degenerate], uniform[degenerate]) if degenerate.size
+             else np.zeros((0, count), int))
     particles[degenerate] = np.take_along_axis(particles[degenerate], picks[..., None], axis=1)
     log_w[degenerate] = -np.log(count)
     return degenerate, picks
@@ -150,10 +153,11 @@ class CNLFTracker(Tracker):
 
     def __init__(self, settings: CNLFSettings, queries: Queries, info: SequenceInfo, rng: np.random.Generator,
                  reference: ReferenceMatcher, errors: ErrorModel, smooth: bool, store_particles: bool):
-        """reference: the points' reference patches and gate; errors: the reported covariance's model;
-        smooth: record what :meth:`smooth` needs (``filter.smooth``); store_particles: :meth:`extras` returns them."""
+        """rng: the pass's source of random draws (it keys :class:`PointDraws`); reference: the points' reference
+        patches and gate; errors: the reported covariance's model; smooth: record what :meth:`smooth` needs
+        (``filter.smooth``); store_particles: :meth:`extras` returns them."""
         super().__init__(queries, info)
-        self.settings, self.rng = settings, rng
+        self.settings, self.draws = settings, PointDraws(rng, queries.point_id)
         self.reference, self.errors = reference, errors
         p, n = len(queries), settings.particles
         self.particles = np.full((p, n, 2), np.nan)
@@ -199,7 +203,8 @@ class CNLFTracker(Tracker):
     def adopt(self, index: np.ndarray, frame_index: int, xy: np.ndarray, cov: np.ndarray) -> None:
         """(Re)start points ``index`` with particles drawn from N(xy (n, 2), cov (n, 2, 2)), equal weights."""
         n = self.settings.particles
-        self.particles[index] = sample_gauss2(self.rng, np.repeat(xy[:, None], n, 1), np.repeat(cov[:, None], n, 1))
+        normals = self.draws.normal_pairs(frame_index, START, index, n)
+        self.particles[index] = sample_gauss2(np.repeat(xy[:, None], n, 1), np.repeat(cov[:, None], n, 1), normals)
         self.log_w[index] = -np.log(n)
         self.lineage_start[index] = frame_index
         self.layer_step[index] = self.measured_step[index] = np.nan  # no layer known until measured twice running
@@ -254,8 +259,10 @@ class CNLFTracker(Tracker):
         if self.transitions is not None:  # particles drawn this frame from the previous one's: smoothable
             linked = self.lineage_start[index] < frame.index
             self.transitions.record(frame.index, index[linked], mu=mu[linked], Q=Q[linked])
-        particles, log_w = propagate(self.rng, self.log_w[index], mu, Q, measured.z, measured.R_used, measured.valid)
-        resampled, picks = resample(self.rng, particles, log_w, self.settings)
+        normals = self.draws.normal_pairs(frame.index, PROPOSAL, index, self.settings.particles)
+        particles, log_w = propagate(normals, self.log_w[index], mu, Q, measured.z, measured.R_used, measured.valid)
+        resampled, picks = resample(self.draws.uniform(frame.index, RESAMPLING, index)[:, 0], particles, log_w,
+                                    self.settings)
         self.ancestors = (index[resampled], picks)
         self.particles[index], self.log_w[index] = particles, log_w
         self._report(index, particles, log_w)

@@ -46,13 +46,13 @@ def log_gauss2(x: np.ndarray, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return -0.5 * quad - 0.5 * np.log(det) - np.log(2 * np.pi)
 
 
-def sample_gauss2(rng: np.random.Generator, mean: np.ndarray, cov: np.ndarray) -> np.ndarray:
-    """Draws from N(mean, cov), (..., 2) and (..., 2, 2), with a closed-form 2x2 Cholesky factor."""
+def sample_gauss2(mean: np.ndarray, cov: np.ndarray, e: np.ndarray) -> np.ndarray:
+    """Draws from N(mean, cov), (..., 2) and (..., 2, 2): mean + L e, L the closed-form 2x2 Cholesky factor of cov
+    and e (..., 2) standard normal draws."""
     a, b, d = cov[..., 0, 0], cov[..., 0, 1], cov[..., 1, 1]
     l11 = np.sqrt(a)
     l21 = b / l11
     l22 = np.sqrt(np.maximum(d - l21 * l21, 0.0))
-    e = rng.standard_normal(mean.shape)
     e0, e1 = e[..., 0], e[..., 1]
     out = np.empty(e.shape)
     out[..., 0] = mean[..., 0] + l11 * e0

@@ -1,7 +1,7 @@
 """Particle weights and resampling schemes, vectorised over points: arrays (n points, N particles).
 
 Schemes are looked up by name in ``RESAMPLERS``; each maps normalised weights
-(n, N) to ancestor indices (n, N) with one random draw per row.
+(n, N) and one uniform draw per row (n,) to ancestor indices (n, N).
 """
 
 from __future__ import annotations
@@ -33,17 +33,19 @@ def _row_searchsorted(edges: np.ndarray, values: np.ndarray) -> np.ndarray:
     return np.minimum(found.reshape(values.shape) - rows * k, k - 1)
 
 
-def systematic(rng: np.random.Generator, weights: np.ndarray) -> np.ndarray:
-    """(n, N) ancestor indices drawn by systematic resampling of (n, N) normalised weights."""
-    n, count = weights.shape
-    u = (rng.random((n, 1)) + np.arange(count)) / count  # one uniform per row, N evenly spaced draws
+def systematic(weights: np.ndarray, uniform: np.ndarray) -> np.ndarray:
+    """(n, N) ancestor indices drawn by systematic resampling of (n, N) normalised weights, (n,) ``uniform`` in
+    [0, 1) the rows' draws."""
+    count = weights.shape[1]
+    u = (uniform[:, None] + np.arange(count)) / count  # N evenly spaced draws per row
     edges = np.cumsum(weights, axis=1)
     edges[:, -1] = 1.0
     return _row_searchsorted(edges, u)
 
 
-def residual(rng: np.random.Generator, weights: np.ndarray) -> np.ndarray:
-    """(n, N) ancestor indices by residual resampling: floor(N w) copies, the rest systematic on the remainders."""
+def residual(weights: np.ndarray, uniform: np.ndarray) -> np.ndarray:
+    """(n, N) ancestor indices by residual resampling of (n, N) normalised weights: floor(N w) copies, the rest
+    systematic on the remainders with the rows' (n,) ``uniform`` draws in [0, 1)."""
     n, count = weights.shape
     copies = np.floor(count * weights)
     taken = copies.sum(axis=1, keepdims=True)  # (n, 1) deterministic copies
@@ -52,7 +54,7 @@ def residual(rng: np.random.Generator, weights: np.ndarray) -> np.ndarray:
     remainder = count * weights - copies
     edges = np.cumsum(remainder, axis=1) / np.maximum(remainder.sum(axis=1, keepdims=True), 1e-300)
     edges[:, -1] = 1.0
-    u = np.clip((rng.random((n, 1)) + slot - taken) / np.maximum(count - taken, 1), 0.0, 1.0 - 1e-12)
+    u = np.clip((uniform[:, None] + slot - taken) / np.maximum(count - taken, 1), 0.0, 1.0 - 1e-12)
     return np.where(slot < taken, kept, _row_searchsorted(edges, u))
 
 
