@@ -48,7 +48,8 @@ def tolerance_line(tolerances: Tolerances) -> str:
     if t.max_share == 0:
         cells = "no cell beyond them"
     else:
-        cells = f"at most {t.max_share * 100:g}% of cells beyond them, none beyond {t.max_px:g} px"
+        cells = (f"at most {t.max_share * 100:g}% of cells beyond them, "
+                 f"none beyond {t.max_px:g} px where both see the point")
     flips = f"{t.visible_flips} visibility flips allowed" + (" beyond near-ties" if t.near_ties else "")
     return f"tolerances: positions {t.atol_px:g} px, covariances and dof {t.rtol_cov:g} relative, {cells}; {flips}"
 
@@ -65,7 +66,9 @@ def report_lines(result: Comparison, path_a: str, path_b: str) -> list[str]:
         lines.append(f"not compared (a CSV does not hold them): {', '.join(skipped)}")
     share = result.differing_cells / result.cells * 100 if result.cells else 0.0
     lines.append(f"differing cells: {result.differing_cells} of {result.cells} ({share:.2f}%); "
-                 f"largest position difference {result.max_px:.3g} px")
+                 f"largest position difference {result.max_px:.3g} px"
+                 + (f" ({result.max_px_seen:.3g} px where both see the point)"
+                    if result.max_px_seen != result.max_px else ""))
     ties = f" ({result.ties} near-tie{'s' if result.ties > 1 else ''})" if result.ties else ""
     counted = [f"{name} {count}" + (ties if name == "visible" else "") for name, count in result.counts.items() if count]
     if counted:
@@ -93,6 +96,7 @@ def report_json(result: Comparison, path_a: str, path_b: str) -> dict:
         "tolerances": {"atol_px": t.atol_px, "rtol_cov": t.rtol_cov, "max_share": t.max_share, "max_px": t.max_px,
                        "visible_flips": t.visible_flips, "near_ties": t.near_ties},
         "cells": result.cells, "differing_cells": result.differing_cells, "max_px": result.max_px,
+        "max_px_seen": result.max_px_seen,
         "near_ties": result.ties, "counts": result.counts,
         "top": [
             {"point_id": d.point_id, "frame": d.frame, "field": d.field,
@@ -114,7 +118,8 @@ def report_json(result: Comparison, path_a: str, path_b: str) -> dict:
               help=f"Percent of the compared cells allowed to differ [default: {TOLERANT.max_share * 100:g}; "
                    "--strict 0].")
 @click.option("--max-px", type=FiniteFloatRange(min=0), default=None,
-              help=f"No position may differ by more (px) [default: {TOLERANT.max_px:g}].")
+              help=f"No position of a row that both results report visible may differ by more (px) "
+                   f"[default: {TOLERANT.max_px:g}].")
 @click.option("--ignore-visible-flips", "visible_flips", type=click.IntRange(min=0), default=None, metavar="N",
               help="Visibility flips allowed beyond near-ties (--strict: beyond none) [default: 0].")
 @click.option("--strict", is_flag=True,
@@ -137,7 +142,9 @@ def _compare(ctx: click.Context, path_a: str, path_b: str, atol_px: float | None
     farther apart than --atol-px, its covariances (relative to the matrices)
     or dof differ by more than --rtol-cov, and (HDF5) likewise its
     measurements z and R. At most --max-share percent of the cells may
-    differ, no position by more than --max-px. A visibility flip where the
+    differ, no position by more than --max-px on a row that both files
+    report visible (a lost point's prediction may lie far from the other
+    run's). A visibility flip where the
     positions differ is a near-tie (a differing cell); a flip on the same
     position counts against --ignore-visible-flips. inf equals only inf of
     the same sign, nan only nan.
