@@ -842,7 +842,7 @@ def test_bench_seed_spread_means_the_seeds_and_keeps_a_missing_metric_missing():
 def test_bench_seed_spread_runs_each_seed_and_judges_the_checks_on_the_mean(tmp_path):
     """``seed_spread_table`` on a one-set shared folder (the shipped occlusion sample, named as a face clip): LK,
     chained DIS and clf once, auto and cnlf once per seed with that seed (their track files differ, the CLF has
-    none per seed), and issue 45's face checks on the means; ``--seeds 0`` is a usage error."""
+    none per seed), and issue 45's face checks and calibration bands on the means; ``--seeds 0`` is a usage error."""
     import shutil
     import subprocess
     import sys
@@ -868,6 +868,12 @@ def test_bench_seed_spread_runs_each_seed_and_judges_the_checks_on_the_mean(tmp_
     checks = [line for line in lines if line.startswith("- [")]
     assert any("dudek_zz: auto" in line and ">= LK" in line for line in checks)
     assert any(line.endswith("+ 0.06") and "face mean of auto" in line for line in checks)
+    # the calibration bands on the means: the face group's table, its mean row the set's mean over the seeds
+    group = lines[lines.index("### face"):]
+    mean_row = next(line for line in group if line.startswith("| face mean |"))
+    auto_mean = float(cells[5].split()[0])
+    assert float(mean_row.strip("|").split("|")[6]) == pytest.approx(auto_mean, abs=1e-3)  # lk dis clf cnlf auto
+    assert any(line.startswith("- [") and "face mean cov90 of auto" in line for line in group)
     result = subprocess.run([sys.executable, "-m", "condtrack_cli.evaluate.bench", "--seeds", "0", "--work",
                              str(tmp_path / "x")], capture_output=True, text=True)
     assert result.returncode == 2 and "--seeds: expected a positive integer, got 0" in result.stderr
