@@ -10,7 +10,6 @@ import cv2
 import numpy as np
 import pytest
 from click.testing import CliRunner
-from conftest import SAMPLES
 
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.evaluate import (
@@ -28,6 +27,7 @@ from condtrack_cli.cli.eval import eval_command
 from condtrack_cli.evaluate.metrics import COVERAGE_LEVELS, calibration_metrics, chi2_2dof, coverage_key
 from condtrack_cli.predictive import ellipse_level, ellipse_m2
 from condtrack_cli.types import Queries, Tracks
+from conftest import SAMPLES
 
 NAN, INF = np.nan, np.inf
 

@@ -4,10 +4,10 @@ A particle filter run over many points from one random stream couples them: a
 point that needs a draw more or fewer (a resampling that one rounding tipped, a
 point that ``auto`` handed to the other filter) shifts the stream under every
 point that draws after it, and all their particles change. With one stream the
-same run on another CPU (OpenCV's AVX kernels off) differed on 47 % of the
-camel's cells with ``cnlf`` under ``condtrack compare``'s defaults (the CLF,
-which draws nothing, on none), and tracking a subset of the queries moved the
-points kept.
+same run on another CPU differed on 47 % of the camel's cells with ``cnlf``
+under ``condtrack compare``'s defaults (the CLF, which draws nothing, on none;
+README, "Golden files in CI", has the commands and every shared set), and
+tracking a subset of the queries moved the points kept (tests/test_cnlf.py).
 
 :class:`PointDraws` makes every draw a function of (the pass's key, the frame,
 the use, the point's id, the draw's number) alone: a counter-based generator,

@@ -40,8 +40,8 @@ point, which may lie far from the other's: where another CPU's rounding tipped
 a match, one run keeps the point and the other coasts (the camel, ``cnlf``: 76
 px apart, 45 px where both see it), and a point that left the frame is
 extrapolated far outside it (KITTI seq009: at 70 000 px with a std of 100 000
-px, the two runs 62 px apart). Such a row counts as a cell beyond ``atol_px``,
-not against ``max_px``. Non-finite values are equal only to
+px, the two runs 62 px apart; README, "Golden files in CI", has the commands).
+Such a row counts as a cell beyond ``atol_px``, not against ``max_px``. Non-finite values are equal only to
 the same kind (NaN to NaN, +inf to +inf); NaN or inf against a number differs
 (``score`` inf). Which fields are compared depends on what both files hold: a
 CSV holds ``CSV_FIELDS``, an HDF5 file all of ``HDF5_FIELDS``.

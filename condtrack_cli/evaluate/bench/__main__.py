@@ -128,7 +128,8 @@ def main() -> None:
                         help="only print the section against OpenCV LK (issue 11); results.md is not written")
     parser.add_argument("--seeds", type=int, metavar="N",
                         help="only print auto's and cnlf's <δ_avg on the real sets at seeds 0 .. N-1 (mean, min-max), "
-                             "LK, chained DIS and clf once, and issue 45's real-video checks on the means")
+                             "LK, chained DIS and clf once, and issue 45's real-video checks and calibration bands on "
+                             "the means")
     parser.add_argument("--hard", choices=("tune", "report"),
                         help="only print issue 31's hard cases on the tuning or the reporting seeds")
     parser.add_argument("--paper", default=",".join(PAPER_METHODS), metavar="METHODS",
@@ -149,28 +150,25 @@ def main() -> None:
                         help="with --versus-lk, --seeds or --hard: a config override for every condtrack run (a "
                              "variant's numbers)")
     args = parser.parse_args()
+    extra = tuple(arg for override in args.set for arg in ("--set", override))  # every condtrack run's overrides
+    sets = tuple(pattern for pattern in args.sets.split(",") if pattern) if args.sets else None
     if args.hard:
         args.work.mkdir(parents=True, exist_ok=True)
-        extra = tuple(arg for override in args.set for arg in ("--set", override))
         print("\n".join(hard_cases_table(args.work, TUNE_SEEDS if args.hard == "tune" else REPORT_SEEDS, extra)))
         return
     if args.seeds is not None:
         if args.seeds < 1:
             parser.error(f"--seeds: expected a positive integer, got {args.seeds}")
         args.work.mkdir(parents=True, exist_ok=True)
-        extra = tuple(arg for override in args.set for arg in ("--set", override))
-        sets = tuple(pattern for pattern in args.sets.split(",") if pattern) if args.sets else None
         print("\n".join(seed_spread_table(args.work, args.shared_data, args.seeds, extra, sets, args.lk_points)))
         return
     if args.versus_lk:
         args.work.mkdir(parents=True, exist_ok=True)
-        extra = tuple(arg for override in args.set for arg in ("--set", override))
         paper = tuple(method for method in args.paper.split(",") if method)
         methods = tuple(method for method in args.methods.split(",") if method)
         unknown = [method for method in methods if method not in COLUMNS]
         if unknown:
             parser.error(f"--methods: unknown column {unknown[0]!r}; valid: {', '.join(COLUMNS)}")
-        sets = tuple(pattern for pattern in args.sets.split(",") if pattern) if args.sets else None
         seeds = NONRIGID_TUNE_SEEDS if args.nonrigid == "tune" else NONRIGID_REPORT_SEEDS
         print("\n".join(versus_lk_section(args.work, args.shared_data, extra, paper, args.lk_points,
                                           not args.no_synthetic, methods, sets, seeds)))

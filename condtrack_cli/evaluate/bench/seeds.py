@@ -49,7 +49,8 @@ def seed_spread_table(work: Path, shared: Path, seeds: int, extra: tuple[str, ..
     """Markdown: per real set of ``shared`` (those matching a glob of ``sets``), <δ_avg of the ``FIXED_COLUMNS`` and
     the mean (min-max) of each of ``SEEDED_METHODS`` over seeds 0 .. ``seeds`` - 1, with the bench's queries
     (:func:`versus_lk_queries`); then issue 45's real-video checks on those means (the camel's cov95 too: the mean
-    of its coverage), and the group tables with the calibration bands (:func:`group_tables`) on the means. extra: arguments added to every ``condtrack track``. Track files: ``work``/seeds_<set>.s<seed>."""
+    of its coverage), and the group tables with the calibration bands (:func:`group_tables`) on the means.
+    extra: arguments added to every ``condtrack track``. Track files: ``work``/seeds_<set>.s<seed>."""
     columns = FIXED_COLUMNS + SEEDED_METHODS
     lines = [f"<δ_avg; {', '.join(SEEDED_METHODS)}: mean (min-max) over seeds 0-{seeds - 1} "
              f"(`condtrack track --seed S`); {', '.join(FIXED_COLUMNS)}: once (they draw nothing).", "",
