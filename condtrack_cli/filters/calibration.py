@@ -73,7 +73,12 @@ The model, per point, reported covariance = g (max(lambda, 1) Sigma + D + W + C)
   (``offset_floor``): nothing then holds the offset below that reach, and an offset
   spread evenly over the disk of radius ``drift_check`` has that per-axis variance
   (with the full ``drift_check``^2, KITTI's 50 % ellipses held 0.645 of the truth,
-  group mean of ``auto``; 0.621 with the quarter; bench/history.md). On the face clips the re-takes
+  group mean of ``auto``; 0.621 with the quarter; bench/history.md). A re-take the
+  first patch does confirm is made at that patch's match, r px from the estimate:
+  the chain of re-takes and the first patch then disagree by r, and nothing tells
+  which is right (the first patch's appearance has changed too), so W is lifted to
+  at least r^2 / 4 per axis, the same disk's variance with the radius measured
+  (issue 45: docs/departures.md, "The re-take walk W"). On the face clips the re-takes
   are made on 70-90 % of the frames (the match's residual is 50-80 times the
   noise's), so W, not D, is most of their error: a steady offset of a few pixels.
 - C: the coasting excess, 0 on a found frame. While a point is not found for t
@@ -367,6 +372,6 @@ class ErrorModel:
         coast = self._coasting(self.coasted[index], self.detour[index])
         self._report(index, scaled, self.drift[index], coast)
         self.walk[index[retaken]] += lam * sigma[retaken]  # the new reference's offset, from the next frame on
-        if offset_floor is not None:  # a re-take its first patch no longer confirms: W at least that floor per axis
+        if offset_floor is not None:  # a re-take's offset from the first patch: W at least that floor per axis
             lift = np.maximum(offset_floor[:, None] - np.diagonal(self.walk[index], axis1=1, axis2=2), 0.0)  # (n, 2)
             self.walk[index] += lift[:, :, None] * np.eye(2)

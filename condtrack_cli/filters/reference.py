@@ -214,8 +214,9 @@ class ReferenceMatcher:
         #: (P, 2, 2) J: the local field's linear maps accumulated since each reference was taken (``warp_reference``)
         self.warp = np.repeat(np.eye(2)[None], n_points, axis=0)
         #: (P,) least per-axis variance of the offset of each point's reference re-taken on the last step (px^2):
-        #: ``drift_check``^2 / 4 where the first patch was not found within ``drift_check`` px of the re-take (the
-        #: per-axis variance of an offset spread evenly over the disk of that radius), else 0
+        #: r^2 / 4, the per-axis variance of an offset spread evenly over the disk of radius r, with r = ``drift_check``
+        #: where the first patch was not found within ``drift_check`` px of the estimate and r = the distance from the
+        #: estimate to the first patch's match where it was (the re-take is there); 0 where no reference was re-taken
         self.offset_floor = np.zeros(n_points)
         self.gate_r = np.repeat(settings.nominal_r * np.eye(2)[None], n_points, axis=0)
         self.noise_sigma: float | None = None
@@ -597,7 +598,8 @@ class ReferenceMatcher:
         self._take(index[candidates[steady]], patches[steady], self._wide_patches(frame, at[steady]))
         retaken[candidates[steady]] = True
         if s.drift_check is not None:
-            self.offset_floor[index[candidates[steady & ~anchored]]] = s.drift_check**2 / 4
+            reach = np.where(anchored, np.linalg.norm(at - x_post[candidates], axis=1), s.drift_check)
+            self.offset_floor[index[candidates[steady]]] = reach[steady] ** 2 / 4
         return retaken
 
     def _anchored(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
