@@ -598,8 +598,8 @@ class ReferenceMatcher:
         self._take(index[candidates[steady]], patches[steady], self._wide_patches(frame, at[steady]))
         retaken[candidates[steady]] = True
         if s.drift_check is not None:
-            reach = np.where(anchored, np.linalg.norm(at - x_post[candidates], axis=1), s.drift_check)
-            self.offset_floor[index[candidates[steady]]] = reach[steady] ** 2 / 4
+            radius = np.where(anchored, np.linalg.norm(at - x_post[candidates], axis=1), s.drift_check)
+            self.offset_floor[index[candidates[steady]]] = radius[steady] ** 2 / 4
         return retaken
 
     def _anchored(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
