@@ -11,7 +11,7 @@ from condtrack_cli.evaluate.score import score_tracks
 from condtrack_cli.filters import kalman
 from condtrack_cli.filters.auto import extrapolation_spread, lost_on_local, swept_by_occluder
 from condtrack_cli.filters.cnlf import CNLFSettings, particle_means, propagate, resample
-from condtrack_cli.filters.draws import PROPOSAL, START, PointDraws
+from condtrack_cli.filters.draws import PROPOSAL, RESAMPLING, START, PointDraws
 from condtrack_cli.filters.gauss2 import inverse2, log_gauss2, matvec2
 from condtrack_cli.filters.resampling import RESAMPLERS, normalise, sum_over_particles
 from condtrack_cli.motion.model import MotionFit
@@ -62,7 +62,7 @@ def test_a_points_draws_are_its_own():
         assert abs(np.corrcoef(every.ravel(), other.ravel())[0, 1]) < 0.05
     many = PointDraws(np.random.default_rng(2), np.arange(1000)).normal_pairs(0, PROPOSAL, np.arange(1000), 100)
     assert abs(many.mean()) < 0.01 and abs(many.var() - 1) < 0.01 and abs(np.mean(np.abs(many) > 1.96) - 0.05) < 0.002
-    uniform = draws.uniform(4, 2, points, 1000)
+    uniform = draws.uniform(4, RESAMPLING, points, 1000)
     assert uniform.min() >= 0 and uniform.max() < 1 and abs(uniform.mean() - 0.5) < 0.02
 
 
