@@ -22,12 +22,15 @@ from test_fallback import JUMP, _jump_frames
 OFF = np.array([1.2, -1.35])  #: the drifted estimate's offset from the point (1.8 px)
 
 
-def _refresh(drift_check: float | None, offset: np.ndarray) -> tuple[ReferenceMatcher, np.ndarray, np.ndarray]:
-    """The matcher after one forced re-take of every point at its true position on frame 1 plus ``offset``, the
-    templates the re-take should give at the truth, and the points' true positions on frame 1."""
+def _refresh(drift_check: float | None, offset: np.ndarray,
+             first_side: int | None = None) -> tuple[ReferenceMatcher, np.ndarray, np.ndarray]:
+    """The matcher after one forced re-take of every point at its true position on frame 1 plus ``offset`` (the first
+    patch matched at ``first_side`` px, ``drift_check_template``), the templates the re-take should give at the
+    truth, and the points' true positions on frame 1."""
     frame0, frame1, xy = _jump_frames()
     measure = SSDMeasure(SSDSettings())
-    matcher = ReferenceMatcher(measure, MeasuredFilterSettings(drift_check=drift_check), len(xy), 9.21)
+    settings = MeasuredFilterSettings(drift_check=drift_check, drift_check_template=first_side)
+    matcher = ReferenceMatcher(measure, settings, len(xy), 9.21)
     index = np.arange(len(xy))
     matcher.start(index, frame0, xy)
     truth = xy + JUMP
@@ -58,6 +61,30 @@ def test_a_drifted_estimate_re_takes_its_reference_where_the_first_patch_matches
     np.testing.assert_allclose(checked.offset_floor, (OFF**2).sum() / 4, rtol=0.1)
     unchecked, _, _ = _refresh(None, OFF)
     assert np.median(_template_error(unchecked, at_truth)) > 5.0
+
+
+def test_a_wider_first_patch_is_taken_at_the_query_and_finds_the_point_too():
+    """``drift_check_template`` 21: the first patch the check matches is the 21 px patch at the query (the 11 px
+    reference's is kept for the re-acquisition), and the drifted estimate's re-take lands on the point as with the
+    11 px one, within 2 grey levels, with the same floor."""
+    wide, at_truth, _ = _refresh(3.0, OFF, first_side=21)
+    frame0, _, xy = _jump_frames()
+    assert wide.drift_anchors.shape == (len(xy), 21, 21) and wide.anchors.shape == (len(xy), 11, 11)
+    np.testing.assert_array_equal(wide.drift_anchors, wide.anchor_measure.templates(frame0.gray, xy))
+    assert (_template_error(wide, at_truth) < 2.0).all()
+    np.testing.assert_allclose(wide.offset_floor, (OFF**2).sum() / 4, rtol=0.1)
+
+
+def test_the_first_patch_side_is_the_reference_s_unless_set_and_odd():
+    """Unset (the default) the check matches the reference's own first patch, the same array; a resized stage is
+    made once per side and shared; an even side is refused."""
+    default, _, _ = _refresh(3.0, OFF)
+    assert default.drift_anchors is default.anchors and default.anchor_measure is default.measure
+    measure = SSDMeasure(SSDSettings())
+    assert measure.resized(21) is measure.resized(21) and measure.resized(21).template_side == 21
+    assert measure.resized(11) is measure
+    with pytest.raises(ValueError, match="must be odd"):
+        MeasuredFilterSettings(drift_check_template=20)
 
 
 def test_a_re_take_the_first_patch_does_not_confirm_gets_the_check_s_reach_as_a_floor():

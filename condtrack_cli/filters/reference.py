@@ -206,8 +206,15 @@ class ReferenceMatcher:
         self.measure, self.settings, self.gamma = measure, settings, gamma
         t = measure.template_side
         self.templates = np.zeros((n_points, t, t), np.float32)
-        #: (P, t, t) each point's first reference patch, taken at its query (the anchor of ``drift_check``)
+        #: (P, t, t) each point's first reference patch, taken at its query
         self.anchors = np.zeros((n_points, t, t), np.float32)
+        #: the measurement at ``drift_check_template`` px (the stage's own without it or without ``resized``), and
+        #: (P, a, a) each point's first patch at its side a, taken at its query: the anchor of ``drift_check``
+        resized = getattr(measure, "resized", None)
+        side = settings.drift_check_template
+        self.anchor_measure = resized(side) if side is not None and resized is not None else measure
+        side = self.anchor_measure.template_side
+        self.drift_anchors = np.zeros((n_points, side, side), np.float32) if side != t else self.anchors
         #: (P, 2t - 1, 2t - 1) the reference and first patches with the room a warp samples (``warp_reference``)
         self.wide = np.zeros((n_points, 2 * t - 1, 2 * t - 1), np.float32)
         self.anchor_wide = np.zeros_like(self.wide)
@@ -243,6 +250,8 @@ class ReferenceMatcher:
         self._take(index, self.measure.templates(frame.gray, xy), self._wide_patches(frame, xy))
         self.anchors[index] = self.templates[index]
         self.anchor_wide[index] = self.wide[index]
+        if self.drift_anchors is not self.anchors:
+            self.drift_anchors[index] = self.anchor_measure.templates(frame.gray, xy)
         self.usual[index] = np.nan
         self.step[index] = np.nan
         self._remember(index, frame, xy)
@@ -604,15 +613,16 @@ class ReferenceMatcher:
 
     def _anchored(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(n, 2) where points ``index`` re-take their reference, and (n,) bool whether that is their first patch's
-        match: the first reference patch's match in a square of half-size ``drift_check`` around (n, 2) estimates
-        ``xy`` where it is informative and lies within ``drift_check`` px of them, else ``xy`` (Matthews, Ishikawa
-        & Baker 2004, "The template update problem": each re-take at the estimate adds its error to every later
-        match; the first patch, where it still fits, holds the re-takes to the point)."""
+        match: the first patch's match (``drift_anchors``, ``drift_check_template`` px) in a square of half-size
+        ``drift_check`` around (n, 2) estimates ``xy`` where it is informative and lies within ``drift_check`` px of
+        them, else ``xy`` (Matthews, Ishikawa & Baker 2004, "The template update problem": each re-take at the
+        estimate adds its error to every later match; the first patch, where it still fits, holds the re-takes to
+        the point)."""
         reach = self.settings.drift_check
         if reach is None or not len(index):
             return xy, np.zeros(len(index), bool)
-        m = self.measure.measure(frame.gray, self.anchors[index], xy, _square_gate(reach, len(index), self.gamma),
-                                 self.noise_sigma)
+        m = self.anchor_measure.measure(frame.gray, self.drift_anchors[index], xy,
+                                        _square_gate(reach, len(index), self.gamma), self.noise_sigma)
         with np.errstate(invalid="ignore"):
             near = m.informative & (np.linalg.norm(m.z - xy, axis=1) <= reach)
         return np.where(near[:, None], m.z, xy), near

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from condtrack_cli.settings import StageSettings
 
@@ -34,6 +34,12 @@ class MeasuredFilterSettings(InitialStateSettings):
         3.0, gt=0,
         description="a refresh re-takes the patch where the point's first reference matches, when that match lies "
                     "within this many px of the estimate (drift correction; null: at the estimate, the paper's)",
+    )
+    drift_check_template: int | None = Field(
+        None, ge=3, le=63,
+        description="side of the first patch the drift check matches (px, odd; null: measure.template, the "
+                    "reference's); wider, what changes inside the point's own patch (a mouth, a blink) moves its "
+                    "match less, but a thin limb's wider patch holds the ground behind it",
     )
     warp_reference: bool = Field(
         True,
@@ -69,6 +75,13 @@ class MeasuredFilterSettings(InitialStateSettings):
                     "its usual residual; the measurement is not used either way (null: reported not visible, the "
                     "paper's)",
     )
+
+    @field_validator("drift_check_template")
+    @classmethod
+    def _odd(cls, value: int | None) -> int | None:
+        if value is not None and value % 2 == 0:
+            raise ValueError("must be odd")
+        return value
 
 
 class STKSettings(StageSettings):

@@ -57,6 +57,8 @@ class Measurer(Protocol):
     # Optional: ``least_residuals(gray, templates (P, t, t), predicted (P, 2), gate_cov (P, 2, 2)) -> (P,)``, the
     # ``Measurement.residual`` :meth:`measure` would report, alone (the re-acquisition measures further only the
     # points whose match could be used; without it: every point).
+    # Optional: ``resized(side) -> Measurer``, the same stage with patches of odd ``side`` px (the drift check
+    # matches each point's first patch at ``filter.clf/cnlf.drift_check_template``; without it: at ``template_side``).
 
     def measure(self, gray: np.ndarray, templates: np.ndarray, predicted: np.ndarray, gate_cov: np.ndarray,
                 sigma: float) -> Measurement:

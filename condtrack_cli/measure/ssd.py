@@ -304,6 +304,16 @@ class SSDMeasure:
         #: the last frame measured and its :func:`frame_sums`, reused while the same frame is measured again
         #: (``auto`` measures its CLF and its CNLF points apart)
         self._sums: tuple[np.ndarray, FrameSums] | None = None
+        self._resized: dict[int, SSDMeasure] = {}  #: :meth:`resized`'s stages, one per side
+
+    def resized(self, side: int) -> SSDMeasure:
+        """This stage with reference patches of odd ``side`` px (its own window sums), the same one for each side:
+        the CLF's and the CNLF's points of ``auto`` share its sums."""
+        if side == self.template_side:
+            return self
+        if side not in self._resized:
+            self._resized[side] = SSDMeasure(self.settings.model_copy(update={"template": side}))
+        return self._resized[side]
 
     def templates(self, gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """(M, t, t) float32 reference patches around (M, 2) positions of a (H, W) float32 frame."""
