@@ -64,7 +64,7 @@ def test_input_failures(tmp_path):
         ("filter: {stk: {win_size: big}}\n", [], "'filter.stk.win_size'"),
         ("filter: {stk: {fb_threshold: -1}}\n", [], "'filter.stk.fb_threshold'"),
         ("", ["--set", "filter.stk.levels=0"], "'filter.stk.levels'"),
-        ("", ["--set", "filter.stk.win_size=500"], "does not fit in the 320x240 frame"),
+        ("", ["-m", "stk", "--set", "filter.stk.win_size=500"], "does not fit in the 320x240 frame"),
         # issue 28.6: PyYAML keeps the last of two equal keys silently
         ("motion:\n  levels: 3\n  levels: 2\n", [], "c.yaml', line 3: key 'levels' given twice"),
         ("filter: {stk: {win_size: 31, win_size: 15}}\n", [], "line 1: key 'win_size' given twice"),
@@ -181,6 +181,20 @@ def test_a_frame_smaller_than_every_window_is_refused_as_too_small(tmp_path, siz
     (tmp_path / "five").mkdir()
     result = run_cli("track", str(_frames_folder(tmp_path / "five", ((5, 5),) * 3)), "-m", method)
     _one_error_line(result, 1, "config key 'detect.block': a window of 7 px does not fit in the 5x5 frame (at most 5)")
+
+
+def test_a_window_of_a_filter_the_method_does_not_use_does_not_refuse_the_frame(tmp_path):
+    """An 18 x 18 frame: STK's 21 px window does not fit it, but ``clf`` does not use STK (it did refuse it, naming
+    filter.stk.win_size); ``-m stk`` still refuses it, naming the key."""
+    folder = _frames_folder(tmp_path, ((18, 18),) * 3)
+    queries = tmp_path / "q.csv"
+    queries.write_text("frame,x,y\n0,9,9\n")
+    out = tmp_path / "out.csv"
+    result = run_cli("track", str(folder), "-p", str(queries), "-m", "clf", "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    assert out.exists()
+    result = run_cli("track", str(folder), "-p", str(queries), "-m", "stk", "-o", str(tmp_path / "stk.csv"))
+    _one_error_line(result, 1, "config key 'filter.stk.win_size': a window of 21 px does not fit in the 18x18 frame")
 
 
 @pytest.mark.parametrize("option, value", [("--atol-px", "nan"), ("--atol-px", "inf"), ("--rtol-cov", "inf"),
