@@ -297,6 +297,30 @@ def test_points_frames_queries_and_methods_are_compared(golden, tmp_path):
     assert not compare_tracks(tracks, edited(tracks, method=method)).agree
 
 
+def _subset(tracks: Tracks, rows: slice, frames: slice = slice(None)) -> Tracks:
+    """The points ``rows`` of ``tracks`` over ``frames``."""
+    q = tracks.queries
+    return Tracks(Queries(q.point_id[rows], q.frame[rows], q.xy[rows]),
+                  *(getattr(tracks, name)[rows, frames] for name in ("xy", "cov", "dof", "visible", "method", "z", "R")))
+
+
+def test_results_without_a_common_point_or_a_frame_are_compared(tmp_path):
+    """Two runs from different query files share no point (a traceback before), and a header-only CSV has neither a
+    point nor a frame: each point in one result only is a difference; two empty results agree."""
+    tracks = make_tracks()
+    result = compare_tracks(_subset(tracks, slice(0, 2)), _subset(tracks, slice(2, 4)))
+    assert not result.agree and result.counts["points"] == 4 and result.cells == 0
+    assert sorted(f.point_id for f in result.top) == [3, 7, 11, 20]
+    empty = _subset(tracks, slice(0, 0), slice(0, 0))
+    assert compare_tracks(empty, empty, fields=CSV_FIELDS).agree
+    result = compare_tracks(empty, tracks, fields=CSV_FIELDS)
+    assert not result.agree and result.counts["points"] == P
+    header_only = tmp_path / "empty.csv"
+    header_only.write_text(write(tmp_path / "a.csv", tracks).read_text().splitlines()[0] + "\n")
+    assert compare(header_only, header_only)[0] == 0
+    assert compare(header_only, tmp_path / "a.csv")[0] == 1
+
+
 def test_measurements_are_compared_between_hdf5_files_only(golden, tmp_path):
     tracks = make_tracks()
     z = tracks.z.copy()

@@ -265,7 +265,7 @@ def compare_tracks(
 
     xy_a, xy_b = _padded(a.xy, ia, n_frames, np.nan), _padded(b.xy, ib, n_frames, np.nan)
     distance = np.where(both, _distance(xy_a, xy_b), 0.0)  # (P, F) px
-    if "moved" in fields:
+    if "moved" in fields and n_frames:  # (without a frame nothing moved)
         moved = both.any(axis=1) & ((distance > tolerances.atol_px) | ~both).all(axis=1)
         nearest = np.where(both, distance, np.inf).argmin(axis=1)  # (P,) each point's frame of smallest distance
         rows = np.arange(len(ids))
@@ -291,7 +291,7 @@ def compare_tracks(
         if field not in fields:
             continue
         pa, pb = _padded(array_a, ia, n_frames, np.nan), _padded(array_b, ib, n_frames, np.nan)
-        kind = _same_kind(pa, pb).reshape(pa.shape[:2] + (-1,)).all(axis=-1)
+        kind = _same_kind(pa, pb).all(axis=tuple(range(2, pa.ndim)))  # (P, F): every entry of the cell
         diff = measure(pa, pb)
         finite = np.isfinite(diff)
         mismatch = both & np.where(finite, diff > tolerance, ~kind)
