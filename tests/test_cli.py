@@ -201,6 +201,23 @@ def test_a_track_csv_with_a_repeated_point_and_frame_is_refused(shifted_folder, 
     assert run_cli(command, *[str(good) if a == str(bad) else a for a in args]).returncode == 0
 
 
+def test_an_image_output_inside_the_input_frame_folder_is_refused(shifted_folder, tmp_path):
+    """``render --contact-sheet`` on one of INPUT's frames overwrote it (the -o check compared the folder itself);
+    a new PNG there would add a frame to the sequence. Both are refused before any work, the frames as they were."""
+    folder, _ = shifted_folder
+    tracks = tmp_path / "t.h5"
+    assert run_cli("track", str(folder), "-m", "stk", "-o", str(tracks), "-q").returncode == 0
+    frames = sorted(folder.glob("*.png"))
+    before = {frame: frame.read_bytes() for frame in frames}
+    for sheet in (frames[1], folder / "sheet.png"):
+        result = run_cli("render", str(tracks), str(folder), "-o", str(tmp_path / "v.mp4"), "--contact-sheet", str(sheet))
+        assert result.returncode == 1 and result.stderr == (
+            f"Error: --contact-sheet {sheet}: an image in the frame folder INPUT {folder}; writing it would replace or "
+            "add a frame of the input\n")
+        assert not (tmp_path / "v.mp4").exists()
+    assert sorted(folder.glob("*.png")) == frames and {f: f.read_bytes() for f in frames} == before
+
+
 def test_output_on_an_input_is_refused_and_a_symlinked_output_is_written_through(shifted_folder, tmp_path):
     """Issue 28.5: -o naming the queries file (or a link to it) is refused; -o on a link replaces its target."""
     folder, _ = shifted_folder

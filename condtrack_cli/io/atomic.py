@@ -37,12 +37,19 @@ def through_links(path: str | Path) -> Path:
 
 
 def refuse_overwriting_inputs(outputs: dict[str, str | Path | None], inputs: dict[str, str | Path | None]) -> None:
-    """CondtrackError when an output (option -> path) is the same file as an input (option -> path); None is absent."""
+    """CondtrackError when an output (option -> path) is the same file as an input (option -> path), or an image
+    inside an input frame folder (a frame it would replace, or one it would add to the sequence); None is absent."""
+    from condtrack_cli.frames.readers import IMAGE_EXTENSIONS
+
     for output_option, output in outputs.items():
         for input_option, given in inputs.items():
-            if output is None or given is None or not (Path(output).exists() and Path(given).exists()):
+            if output is None or given is None or not Path(given).exists():
                 continue
-            if os.path.samefile(output, given):
+            if Path(given).is_dir() and Path(output).suffix.lower() in IMAGE_EXTENSIONS \
+                    and through_links(output).resolve().parent == Path(given).resolve():
+                raise CondtrackError(f"{output_option} {output}: an image in the frame folder {input_option} {given}; "
+                                     "writing it would replace or add a frame of the input")
+            if Path(output).exists() and os.path.samefile(output, given):
                 raise CondtrackError(f"{output_option} {output}: the same file as the input {input_option} {given}; "
                                      "writing it would destroy the input")
 
