@@ -35,7 +35,7 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
 
     The header holds ``frame``, ``x``, ``y`` and optionally ``point_id``, in any
     order, each once; any other column is refused (a misspelt ``point_id`` would
-    renumber the points). Without a ``point_id`` column the points are numbered 0.. in file order. A
+    renumber the points), and so is a row with a value beyond the header's columns. Without a ``point_id`` column the points are numbered 0.. in file order. A
     point must lie inside the frame ([-0.5, W-0.5] x [-0.5, H-0.5], the pixel
     convention of docs/schema.md) and its frame in [0, n_frames).
     """
@@ -59,6 +59,9 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
     body = [row for row in rows[1:] if any(cell.strip() for cell in row)]
     if not body:
         raise CondtrackError(f"{path}: no query rows")
+    for line, row in enumerate(body, start=2):  # a value beyond the header's columns has no column to be read as
+        if any(cell.strip() for cell in row[len(header):]):
+            raise CondtrackError(f"{path}: row {line} has {len(row)} fields, the header {len(header)}")
     columns = {name: header.index(name) for name in (*REQUIRED_COLUMNS, "point_id") if name in header}
     values = {}
     for name, column in columns.items():

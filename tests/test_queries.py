@@ -51,3 +51,12 @@ def test_whole_numbers_written_as_decimals_are_accepted(tmp_path):
     queries = _read(tmp_path, "point_id,frame,x,y\n3.0,2.0,2,3\n1e3,0,4,5\n")
     assert queries.point_id.tolist() == [3, 1000] and queries.frame.tolist() == [2, 0]
     assert queries.point_id.dtype == np.int64
+
+
+def test_a_value_beyond_the_header_s_columns_is_refused_an_empty_trailing_cell_is_not(tmp_path):
+    """``frame,x,y`` then ``0,10,3,7``: the 7 (meant as a point_id?) had no column and was dropped, the point
+    numbered 0; a spreadsheet's trailing empty cell (``0,10,3,``) is no value."""
+    with pytest.raises(CondtrackError, match=r"q.csv: row 3 has 4 fields, the header 3$"):
+        _read(tmp_path, "frame,x,y\n0,4,5\n0,10,3,7\n")
+    queries = _read(tmp_path, "frame,x,y\n0,4,5,\n1,10,3, \n")
+    assert queries.point_id.tolist() == [0, 1] and queries.xy.tolist() == [[4.0, 5.0], [10.0, 3.0]]
