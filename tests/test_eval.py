@@ -278,6 +278,19 @@ def test_load_gt_tapvid_refuses_several_videos_and_bad_files(tmp_path):
         load_gt_tapvid(tmp_path / "junk.pkl")
 
 
+@pytest.mark.parametrize("value", [np.nan, np.inf])
+def test_load_gt_tapvid_refuses_a_visible_point_without_finite_coordinates(tmp_path, value):
+    """A NaN or inf on a visible frame was read and skewed the scores (and showed as a non-finite predicted
+    covariance); the CSV reader refuses the same row. On an occluded frame it is no position, and is read."""
+    video = tapvid_video()
+    video["points"][1, 2, 0] = value
+    with pytest.raises(CondtrackError, match=r"gt.pkl: point 1, frame 2: a visible point needs finite x and y"):
+        load_gt_tapvid(dump(tmp_path / "gt.pkl", video))
+    video = tapvid_video()
+    video["points"][0, 1] = value  # point 0 is occluded on frame 1
+    assert not load_gt_tapvid(dump(tmp_path / "gt.pkl", video)).visible[0, 1]
+
+
 class _Touches:
     """Unpickled, it runs ``touch`` on a file (a crafted TAP-Vid file could run anything)."""
 

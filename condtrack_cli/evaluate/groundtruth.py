@@ -225,7 +225,7 @@ def load_gt_tapvid(path: str | Path) -> GroundTruth:
     JPEG/PNG-encoded frames, as in TAP-Vid-Kinetics), ``points`` (P, F, 2)
     normalised (x, y) and ``occluded`` (P, F) bool; or a dict (or list) of such
     videos, of which there must be exactly one. Every frame of every point is
-    known; ``point_id`` is the row index 0..P-1. The pickle is read by
+    known; ``point_id`` is the row index 0..P-1; a visible point's x and y must be finite (as a CSV row's). The pickle is read by
     :class:`_ArraysOnly`: a file naming anything but NumPy arrays, dicts, lists,
     strings and numbers is refused before any of it runs.
     """
@@ -246,6 +246,11 @@ def load_gt_tapvid(path: str | Path) -> GroundTruth:
         raise CondtrackError(
             f"{path}: 'points' {points.shape} and 'occluded' {occluded.shape} are not (P, F, 2) and (P, F)"
         )
+    bad = ~occluded & ~np.isfinite(points).all(axis=2)
+    if bad.any():
+        point, frame = np.argwhere(bad)[0]
+        raise CondtrackError(f"{path}: point {point}, frame {frame}: a visible point needs finite x and y "
+                             f"(got {points[point, frame, 0]}, {points[point, frame, 1]})")
     gt_xy = tapvid_to_pixels(points, width, height)
     return GroundTruth(np.arange(len(points), dtype=np.int64), gt_xy, ~occluded, np.ones(occluded.shape, bool))
 
