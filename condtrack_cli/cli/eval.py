@@ -65,7 +65,9 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
                     closer than x px (x = 1, 2, 4, 8, 16); delta_avg: their mean
       jaccard_x     TP / (GT visible + FP); AJ: their mean
       OA            fraction of scored frames with the right visibility
-      median_err    median distance on GT-visible scored frames (px)
+      median_err    median distance on GT-visible scored frames (px); a frame
+                    without a position counts as infinitely far, so n/a (null)
+                    when more than half of them have none
       covP          fraction of GT-visible scored positions inside the
                     predicted ellipse of level P% (P = 50, 90, 95, 99; ideal P/100)
       nees          mean d^T C^-1 d over those with a finite covariance (ideal 2)
