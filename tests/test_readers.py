@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import warnings
 from pathlib import Path
 
 import cv2
@@ -94,6 +95,20 @@ def test_bad_folders(tmp_path):
         next(frames)
     with pytest.raises(CondtrackError, match=r"frame 2 .*not a readable image"):
         source.read(2)
+
+
+def test_a_truncated_video_warns_that_its_container_lists_more_frames(folder_and_video, tmp_path):
+    """Decoding stopped at the cut looked like the clip's end; the complete file gives no warning."""
+    frames, _, video = folder_and_video
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert open_frames(FrameSettings(), video).info.n_frames == 5
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(video.read_bytes()[: int(video.stat().st_size * 0.6)])
+    with pytest.warns(CondtrackWarning, match=r"cut.avi: decoding stopped after [1-4] of the 5 frames its container"):
+        source = open_frames(FrameSettings(), cut)
+    assert 1 <= source.info.n_frames < 5
+    np.testing.assert_array_equal(source.read(0), frames[0])
 
 
 def test_unreadable_video(tmp_path):

@@ -109,9 +109,13 @@ class VideoSource:
         while capture.grab():
             count += 1
         fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
+        listed = float(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0.0)  # the container's count (0: none)
         capture.release()
         if count == 0:
             raise CondtrackError(f"{path}: not a readable video (OpenCV decoded no frame)")
+        if np.isfinite(listed) and listed > count:  # a decode error mid-stream looks like the end of the clip
+            warn(f"{path}: decoding stopped after {count} of the {int(listed)} frames its container lists (a "
+                 f"truncated or damaged file?); the {count} decoded are read")
         first = next(iter(self))
         self.info = SequenceInfo(str(path), first.shape[1], first.shape[0], count, fps if np.isfinite(fps) else 0.0)
 
