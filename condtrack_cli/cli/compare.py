@@ -114,7 +114,7 @@ def report_json(result: Comparison, path_a: str, path_b: str) -> dict:
 @click.option("--rtol-cov", type=FiniteFloatRange(min=0), default=None,
               help="A cell differs where its covariances differ by more, relative to the matrices (Frobenius norm), "
                    f"or its dof relative to the larger [default: {TOLERANT.rtol_cov:g}; --strict {STRICT.rtol_cov:g}].")
-@click.option("--max-share", type=FiniteFloatRange(min=0), default=None, metavar="PERCENT",
+@click.option("--max-share", type=FiniteFloatRange(min=0, max=100), default=None, metavar="PERCENT",
               help=f"Percent of the compared cells allowed to differ [default: {TOLERANT.max_share * 100:g}; "
                    "--strict 0].")
 @click.option("--max-px", type=FiniteFloatRange(min=0), default=None,
