@@ -499,7 +499,8 @@ def test_a_moved_query_differs_even_in_a_csv(golden, tmp_path):
     assert table_rows(out)[0][:3] == ["3", "-", "moved"]
 
 
-@pytest.mark.parametrize("option, value", [("--max-share", "nan"), ("--max-share", "-1"), ("--max-share", "150"), ("--max-px", "inf")])
+@pytest.mark.parametrize("option, value", [("--max-share", "nan"), ("--max-share", "-1"), ("--max-share", "150"),
+                                           ("--max-px", "inf")])
 def test_the_new_tolerances_refuse_what_is_not_a_finite_number(golden, option, value):
     result = CliRunner().invoke(compare_command, [str(golden), str(golden), option, value])
     assert result.exit_code == 2 and result.stdout == ""
