@@ -308,6 +308,9 @@ def load_config(
     for _, override in parsed:
         _apply_override(raw, *override)
     if method is not None:
+        written = raw.get("filter")
+        if isinstance(written, dict) and "method" in written:  # a bad value stays bad under -m
+            check_method(written["method"])
         _apply_override(raw, ["filter", "method"], method)
     config = resolve(raw)
     for name, (key_path, _) in parsed:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 import condtrack_cli as ct
+from condtrack_cli.config import load_config
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io.read import read_tracks as read_result
 
@@ -94,6 +95,9 @@ def test_config_mapping_is_validated_like_the_yaml(tmp_path):
         ct.track(str(SAMPLE), config={"motion": {"levelz": 3}})
     with pytest.raises(CondtrackError, match=r"config key 'filter.method': unknown method 'nope'"):
         ct.track(str(SAMPLE), method="nope")
+    with pytest.raises(CondtrackError, match=r"config key 'filter.method': unknown method 'foo'"):
+        load_config({"filter": {"method": "foo"}}, method="clf")  # a bad value written stays bad under -m
+    assert load_config({"filter": {"method": "cnlf"}}, method="clf").method == "clf"
     with pytest.raises(CondtrackError, match=r"a csv file needs a \.csv name"):
         ct.track(str(SAMPLE), queries=str(SAMPLE / "queries.csv"), config={"filter": {"method": "mdr"}}).to_csv(
             tmp_path / "x.h5")
