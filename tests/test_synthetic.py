@@ -263,6 +263,18 @@ def test_jumps_and_card_are_the_hard_cases_of_issue_31(seed):
     assert not card.visible[card.layer == 1, 0].any()  # the card starts outside the frame
 
 
+@pytest.mark.parametrize("n_frames", [2, 4, 9, 10])
+def test_a_short_card_clip_is_the_start_of_the_long_one(n_frames):
+    """--frames 2-9 crashed: the card's points were picked on its arrival frame (7-9) whatever the clip's length;
+    at 10 the card jumped out of the frame on frame 8 (np.interp's knots out of order). Seed 0 (arrival 9, leaving
+    after frame 20): the card moves as in the default 30 frames, its points picked on the clip's last frame."""
+    full = synthetic.make_scene("card", seed=0, size=(64, 64))
+    short = synthetic.make_scene("card", seed=0, size=(64, 64), n_frames=n_frames)
+    assert short.frames.shape[0] == n_frames
+    np.testing.assert_array_equal(short.maps[1], full.maps[1, :n_frames])
+    assert short.visible[short.layer == 1, -1].all()  # picked in place on the last frame
+
+
 def test_synth_help_lists_every_scene():
     """The --scene help is written out (the command line imports no numpy for --help): it names every scene."""
     from click.testing import CliRunner

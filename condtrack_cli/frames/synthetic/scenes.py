@@ -273,7 +273,9 @@ def card(seed: int = 0, size: tuple[int, int] = DEFAULT_SIZE, n_frames: int = 30
     the frame for 8-11 frames moving with the background, then leaves across the
     frame or back the way it came over 5-7 frames; the last frames are clear, so
     covered points come back. Queries: ~48 background points on frame 0 (many of
-    them covered later) and ~12 card points on its first frame in place.
+    them covered later) and ~12 card points on its first frame in place. A clip
+    shorter than the story (up to 30 frames) stops part way, its card points picked
+    on its last frame when the card is not in place yet (none while it is outside).
     """
     w, h, rng, noise_rng = _start(seed, size, n_frames, noise)
     centre = np.array([w - 1, h - 1]) / 2
@@ -289,15 +291,15 @@ def card(seed: int = 0, size: tuple[int, int] = DEFAULT_SIZE, n_frames: int = 30
     stay = centre[0] + rng.uniform(-0.1, 0.1) * w
     arrive = 2 + int(rng.integers(5, 8))
     leave = arrive + int(rng.integers(8, 12))
-    gone = min(leave + int(rng.integers(5, 8)), n_frames - 3)
+    gone = max(min(leave + int(rng.integers(5, 8)), n_frames - 3), leave + 1)  # the knots of np.interp increase
     exit_x = outside if rng.integers(2) else 2 * centre[0] - outside
     k = np.arange(n_frames, dtype=float)
     x = np.interp(k, [0, 2, arrive, leave, gone], [outside, outside, stay, stay + (leave - arrive) * pan[0], exit_x])
-    y = centre[1] + np.interp(k, [0, arrive, leave, n_frames - 1], [0, 0, (leave - arrive) * pan[1], (leave - arrive) * pan[1]])
+    y = centre[1] + np.interp(k, [0, arrive, leave], [0, 0, (leave - arrive) * pan[1]])
     to_frame = np.concatenate([np.broadcast_to(np.eye(2), (n_frames, 2, 2)),
                                (np.stack([x, y], axis=1) - source)[..., None]], axis=2)
     occluder = _Layer(_coeffs("camera"), to_frame, shape)
-    plan = [(0, 0, 48), (1, arrive, 12)]
+    plan = [(0, 0, 48), (1, min(arrive, n_frames - 1), 12)]
     return _build("card", seed, noise, (w, h), [background, occluder], ["background", "card"], plan, noise_rng)
 
 
