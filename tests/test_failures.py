@@ -166,6 +166,23 @@ def test_synth_into_a_folder_that_cannot_be_written(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["afile"]
 
 
+def test_synth_samples_refuse_a_foreign_file_before_writing_any_sample(tmp_path):
+    """``--samples --force`` with a file of the user's in the last sample folder: a traceback after the first
+    folders were rewritten. Now the single-scene message, exit 1, and every file keeps its bytes and mtime."""
+    from condtrack_cli.frames.synthetic import write_samples
+
+    root = tmp_path / "samples"
+    write_samples(root)
+    (root / "ring" / "mine.txt").write_text("mine")
+    before = {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in root.rglob("*") if p.is_file()}
+    message = f"{root / 'ring'}: holds 'mine.txt', not a synthetic scene folder; not overwriting"
+    _one_error_line(run_cli("synth", str(root), "--samples", "--force"), 1, message)
+    assert {p: (p.read_bytes(), p.stat().st_mtime_ns) for p in root.rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in root.iterdir()) == sorted(["camera_motion", "occlusion", "ring"])
+    _one_error_line(run_cli("synth", str(root / "ring"), "--scene", "ring", "--force", "--frames", "2",
+                            "--size", "64x64"), 1, message)
+
+
 
 @pytest.mark.parametrize("size", [(1, 1), (2, 2), (2, 40)])
 @pytest.mark.parametrize("method", ["stk", "clf"])

@@ -45,6 +45,8 @@ def synth(out, scene, samples, seed, size, n_frames, noise, force) -> None:
         _refuse_replacing([Path(out) / name for name in SAMPLE_SEEDS], force)
         try:
             written = write_samples(out)
+        except ValueError as error:  # a sample folder holding other files, checked before any is written
+            raise CondtrackError(str(error)) from None
         except OSError as error:
             raise CondtrackError(f"{out}: cannot write the samples ({error.strerror}: {error.filename})") from None
         for name, folder in written.items():

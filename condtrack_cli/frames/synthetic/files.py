@@ -25,10 +25,7 @@ def write_scene(scene: Scene, out_dir: str | Path) -> Path:
     this writer does not produce is refused (ValueError) rather than deleted.
     """
     out_dir = Path(out_dir)
-    if out_dir.exists():
-        foreign = [p.name for p in out_dir.iterdir() if not _OWN_FILES.fullmatch(p.name)]
-        if foreign:
-            raise ValueError(f"{out_dir}: holds '{foreign[0]}', not a synthetic scene folder; not overwriting")
+    _refuse_foreign(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     try:
@@ -69,6 +66,14 @@ def write_scene(scene: Scene, out_dir: str | Path) -> Path:
     return out_dir
 
 
+def _refuse_foreign(out_dir: Path) -> None:
+    """ValueError when ``out_dir`` exists and holds a file :func:`write_scene` does not produce."""
+    if out_dir.exists():
+        foreign = [p.name for p in out_dir.iterdir() if not _OWN_FILES.fullmatch(p.name)]
+        if foreign:
+            raise ValueError(f"{out_dir}: holds '{foreign[0]}', not a synthetic scene folder; not overwriting")
+
+
 def _write_csv(path: Path, header: str, columns: list[np.ndarray], fmt: str) -> None:
     """One row per element of the (N,) columns, formatted by ``fmt``."""
     table = np.empty((len(columns[0]), len(columns)), dtype=object)
@@ -79,5 +84,11 @@ def _write_csv(path: Path, header: str, columns: list[np.ndarray], fmt: str) -> 
 
 
 def write_samples(out_root: str | Path) -> dict[str, Path]:
-    """Write the shipped samples (SAMPLE_SEEDS, default sizes) as ``out_root/<scene>``; returns name -> folder."""
-    return {name: write_scene(make_scene(name, seed), Path(out_root) / name) for name, seed in SAMPLE_SEEDS.items()}
+    """Write the shipped samples (SAMPLE_SEEDS, default sizes) as ``out_root/<scene>``; returns name -> folder.
+
+    Every folder is checked as :func:`write_scene` checks it before any is written.
+    """
+    folders = {name: Path(out_root) / name for name in SAMPLE_SEEDS}
+    for folder in folders.values():
+        _refuse_foreign(folder)
+    return {name: write_scene(make_scene(name, SAMPLE_SEEDS[name]), folder) for name, folder in folders.items()}
