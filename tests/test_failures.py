@@ -305,6 +305,9 @@ def test_messages_show_values_plainly_and_name_an_input_once(tmp_path):
     (["synth", "{tmp}/s", "--scene", "ring", "--size", "abc"], "Invalid value for '--size': expected WIDTHxHEIGHT"),
     (["synth", "{tmp}/s", "--scene", "nosuch"], "Invalid value for '--scene': unknown scene 'nosuch'"),
     (["synth", "{tmp}/s", "--scene", "ring", "--size", "100000x100000"], "too large (at most 4096 px each way)"),
+    (["synth", "{tmp}/s", "--scene", "ring", "--samples"], "--scene: a single-scene option (not with --samples)"),
+    (["synth", "{tmp}/s", "--samples", "--force", "--size", "64x64", "--seed", "0", "--frames", "3", "--noise", "9"],
+     "--seed, --size, --frames, --noise: a single-scene option (not with --samples)"),
 ])
 def test_command_line_mistakes_are_usage_errors(tmp_path, args, message):
     """Issue 28.18 (and the synth size bound of 28.11): exit 2 after Click's usage line, the filter.method key unnamed

@@ -5,9 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
 from condtrack_cli.cli.options import FiniteFloatRange
 from condtrack_cli.errors import CondtrackError
+
+#: Options of ``synth`` that --samples ignores (the samples are fixed scenes and seeds at their defaults).
+SCENE_ONLY = ("scene", "seed", "size", "n_frames", "noise")
 
 
 class _Size(click.ParamType):
@@ -25,7 +29,8 @@ class _Size(click.ParamType):
 @click.command("synth")
 @click.argument("out", type=click.Path(file_okay=False))
 @click.option("--scene", help="Scene to write into OUT: camera_motion, occlusion, ring, illumination, fast, jumps, card, nonrigid.")
-@click.option("--samples", is_flag=True, help="Write the shipped sample sequences under OUT instead (make samples).")
+@click.option("--samples", is_flag=True,
+              help="Write the shipped sample sequences under OUT instead (make samples); takes --force only.")
 @click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
 @click.option("--size", type=_Size(), default="320x240", show_default=True, help="WIDTHxHEIGHT in pixels.")
 @click.option("--frames", "n_frames", type=click.IntRange(min=2), help="Number of frames (the scene's default otherwise).")
@@ -42,6 +47,10 @@ def synth(out, scene, samples, seed, size, n_frames, noise, force) -> None:
 
     usage = click.get_current_context()
     if samples:
+        given = [param.opts[0] for param in usage.command.params
+                 if param.name in SCENE_ONLY and usage.get_parameter_source(param.name) is ParameterSource.COMMANDLINE]
+        if given:
+            usage.fail(f"{', '.join(given)}: a single-scene option (not with --samples)")
         _refuse_replacing([Path(out) / name for name in SAMPLE_SEEDS], force)
         try:
             written = write_samples(out)
