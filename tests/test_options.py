@@ -171,6 +171,21 @@ def test_a_dof_not_above_2_is_refused_showing_the_value(tmp_path, dof):
                                   "expected a number above 2 or inf (Gaussian)")
 
 
+@pytest.mark.parametrize("x, y", [("nan", "20.0"), ("10.0", "inf")])
+def test_a_row_without_a_finite_position_is_refused_showing_it(tmp_path, x, y):
+    """docs/schema.md: a CSV row exists only where the point has a position, always finite; a hand-edited NaN on a
+    visible row was read by info, eval and render without a word."""
+    path = tmp_path / "t.csv"
+    _track_csv(path, "inf")
+    lines = path.read_text().splitlines()
+    lines[2] = lines[2].replace("10.0,20.0", f"{x},{y}")
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(CondtrackError) as refused:
+        read_tracks(path)
+    assert str(refused.value) == (f"{path}: line 3 (point_id 0, frame 1): x, y is {x}, {y}: a row is a position, "
+                                  "always finite")
+
+
 @pytest.mark.parametrize("dof, value", [("2.5", 2.5), ("1e6", 1e6), ("inf", np.inf)])
 def test_a_dof_above_2_or_inf_is_read(tmp_path, dof, value):
     path = tmp_path / "t.csv"
