@@ -219,6 +219,18 @@ def test_files_of_schema_1_0_are_read_as_gaussian(tmp_path):
     assert compare_tracks(read_tracks(old_h5)[0], read_tracks(new_h5)[0]).agree
 
 
+@pytest.mark.parametrize("dataset", ["dof", "trackability"])
+def test_a_schema_2_0_hdf5_without_a_dataset_2_0_added_is_refused(tmp_path, dataset):
+    """Schema 2.0 added /tracks/dof and /tracks/trackability; a 2.0 file without one was read as a 1.0 file (Gaussian
+    rows, unknown scores) without a word."""
+    path = tmp_path / "t.h5"
+    write_small(path)
+    with h5py.File(path, "r+") as f:
+        del f[f"tracks/{dataset}"]
+    with pytest.raises(CondtrackError, match=rf"t.h5: damaged or incomplete condtrack HDF5 file .*{dataset}"):
+        read_tracks(path)
+
+
 def test_an_hdf5_whose_shapes_depart_from_the_schema_is_refused(tmp_path):
     path = tmp_path / "t.h5"
     write_small(path)
