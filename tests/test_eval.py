@@ -537,6 +537,8 @@ def test_cli_hdf5_prediction(files, tmp_path):
         f["tracks/cov"] = pred_cov()
         f["tracks/visible"] = PRED_VISIBLE
         f["tracks/method_code"] = np.where(has, 2, -1).astype(np.int8)
+        f["tracks/dof"] = np.where(has, np.inf, np.nan)  # Gaussian rows
+        f["tracks/trackability"] = np.full(2, np.nan)
         f["queries"] = np.column_stack([first, xy[[0, 1], first]]).astype(float)
     result = CliRunner().invoke(eval_command, [str(path), str(gt), "--json", "--query-mode", "strided"])
     assert result.exit_code == 0, result.output
