@@ -35,7 +35,8 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
 
     The header holds ``frame``, ``x``, ``y`` and optionally ``point_id``, in any
     order, each once; any other column is refused (a misspelt ``point_id`` would
-    renumber the points), and so is a row with a value beyond the header's columns. Without a ``point_id`` column the points are numbered 0.. in file order. A
+    renumber the points), and so is a row with a value beyond the header's columns.
+    Without a ``point_id`` column the points are numbered 0.. in file order. A
     point must lie inside the frame ([-0.5, W-0.5] x [-0.5, H-0.5], the pixel
     convention of docs/schema.md) and its frame in [0, n_frames).
     """

@@ -225,7 +225,8 @@ def load_gt_tapvid(path: str | Path) -> GroundTruth:
     JPEG/PNG-encoded frames, as in TAP-Vid-Kinetics), ``points`` (P, F, 2)
     normalised (x, y) and ``occluded`` (P, F) bool; or a dict (or list) of such
     videos, of which there must be exactly one. Every frame of every point is
-    known; ``point_id`` is the row index 0..P-1; a visible point's x and y must be finite (as a CSV row's). The pickle is read by
+    known; ``point_id`` is the row index 0..P-1; a visible point's x and y must be
+    finite (as a CSV row's). The pickle is read by
     :class:`_ArraysOnly`: a file naming anything but NumPy arrays, dicts, lists,
     strings and numbers is refused before any of it runs.
     """

@@ -176,9 +176,9 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
             names = np.array(t["method_code"].attrs.get("names", ",".join(BUILTIN_METHOD_CODES)).split(","))
             file_codes = np.append(_codes_of(path, names), np.int8(-1))  # the file's code -1 (last) stays -1
             has_state = np.isfinite(xy).all(axis=-1)
-            first = version == "1.0"  # schema 2.0 added dof and trackability: a 2.0 file without them is incomplete
-            dof = np.where(has_state, np.inf, np.nan) if first else t["dof"][()]  # schema 1.0: Gaussian
-            scores = np.full(len(queries), np.nan) if first else t["trackability"][()]  # 1.0: unknown, NaN
+            before_2 = version == "1.0"  # schema 2.0 added dof and trackability: a 2.0 file without them is incomplete
+            dof = np.where(has_state, np.inf, np.nan) if before_2 else t["dof"][()]  # schema 1.0: Gaussian
+            scores = np.full(len(queries), np.nan) if before_2 else t["trackability"][()]  # 1.0: unknown, NaN
             tracks = Tracks(queries, xy, t["cov"][()], dof, t["visible"][()].astype(bool),
                             file_codes[t["method_code"][()]], z, R, trackability=scores)
             _check_layout(tracks)
