@@ -307,6 +307,8 @@ def load_config(
     parsed = [(name, parse_override(text)) for name, text in given]
     for _, override in parsed:
         _apply_override(raw, *override)
+    _warn_overridden(parsed[: len(overrides)], parsed[len(overrides) :]
+                     + ([("-m", (["filter", "method"], method))] if method is not None else []))
     if method is not None:
         written = raw.get("filter")
         if isinstance(written, dict) and "method" in written:  # a bad value stays bad under -m
@@ -318,6 +320,16 @@ def load_config(
         if reason:
             warn(f"{name} has no effect: {reason}")
     return config
+
+
+def _warn_overridden(sets: list[tuple[str, tuple[list[str], Any]]],
+                     later: list[tuple[str, tuple[list[str], Any]]]) -> None:
+    """Warn for each ``--set`` (name, (key path, value)) in ``sets`` that an option of ``later`` (``--forward-only``,
+    ``-m``, ...) sets to another value: the option is applied after it, so it has no effect."""
+    for name, (path, value) in sets:
+        for option, (option_path, option_value) in later:
+            if option_path == path and option_value != value:
+                warn(f"{name} has no effect: {option} sets {'.'.join(path)} to {_yaml_scalar(option_value)}")
 
 
 def _yaml_scalar(value: Any) -> str:

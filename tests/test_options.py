@@ -120,6 +120,21 @@ def test_max_std_without_a_covariance_is_warned():
         assert load_config(None, [], "mdr", {"--max-std": "output.max_std=3.0"}).output.max_std == 3.0
 
 
+def test_a_set_that_an_option_overrides_is_warned():
+    """``--forward-only --set output.backward=true`` ran forward only, ``-m stk --set filter.method=clf`` ran STK, without
+    a word: the option is applied after the --set. The same value twice is no conflict."""
+    with pytest.warns(CondtrackWarning, match="^--set output.backward=true has no effect: --forward-only sets "
+                                              "output.backward to false$"):
+        config = load_config(None, ["output.backward=true"], None, {"--forward-only": "output.backward=false"})
+    assert config.output.backward is False
+    with pytest.warns(CondtrackWarning, match="^--set filter.method=clf has no effect: -m sets filter.method to stk$"):
+        assert load_config(None, ["filter.method=clf"], "stk").method == "stk"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_config(None, ["filter.method=stk", "output.backward=false"], "stk",
+                    {"--forward-only": "output.backward=false"})
+
+
 def test_max_std_without_a_covariance_is_warned_on_the_command_line(tmp_path):
     result = CliRunner().invoke(cli, [*TRACK_STK, "--max-std", "3", "-o", str(tmp_path / "t.csv")])
     assert result.exit_code == 0, result.output
