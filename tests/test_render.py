@@ -233,6 +233,18 @@ def test_render_from_csv_pads_to_the_input(frames_folder, tmp_path):
         in result.stderr
 
 
+def test_render_of_a_header_only_csv_says_it_holds_no_row(frames_folder, tmp_path):
+    """It said 'rows up to frame -1 ... was it tracked on another input?'; the overlay is the bare input."""
+    from condtrack_cli.io.write import csv_text
+
+    csv = tmp_path / "t.csv"
+    csv.write_text(csv_text(make_tracks()).splitlines()[0] + "\n")
+    result = CliRunner().invoke(cli, ["render", str(csv), str(frames_folder), "-o", str(tmp_path / "o.mp4")])
+    assert result.exit_code == 0, result.output
+    assert f"{csv} holds no track row (a header only): no point to show on {frames_folder}" in result.stderr
+    assert "frame -1" not in result.stderr and (tmp_path / "o.mp4").exists()
+
+
 def test_render_warns_about_a_csv_with_visible_positions_outside_the_frame(frames_folder, tmp_path):
     """Issue 28.9: a CSV holds no frame size; visible positions outside the input's frame say it is another input's."""
     from condtrack_cli.io.write import csv_text

@@ -221,7 +221,7 @@ def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, in
 
     An HDF5 file of another frame size or count is refused. A CSV holds neither:
     it is refused when it has rows past the input's end, and gets a warning
-    (:class:`CondtrackWarning`) when it ends before it or has visible positions outside its frame.
+    (:class:`CondtrackWarning`) when it has no row, ends before it or has visible positions outside its frame.
     """
     ours = f"{info.input} has {info.width}x{info.height} px, {info.n_frames} frames"
     if "width" in meta:
@@ -234,7 +234,9 @@ def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, in
     extra = info.n_frames - tracks.xy.shape[1]
     if extra < 0:
         raise CondtrackError(f"{tracks_path} has rows up to frame {tracks.xy.shape[1] - 1}, but {ours}")
-    if extra:
+    if not tracks.xy.shape[1]:
+        warn(f"{tracks_path} holds no track row (a header only): no point to show on {info.input}")
+    elif extra:
         warn(f"{tracks_path} has rows up to frame {tracks.xy.shape[1] - 1}, but {ours}: was it tracked on another input?")
     shown = tracks.xy[tracks.visible]
     outside = int((np.isfinite(shown).all(axis=-1) & ~info.contains(shown)).sum())
