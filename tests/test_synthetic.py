@@ -272,6 +272,7 @@ def test_a_short_card_clip_is_the_start_of_the_long_one(n_frames):
     short = synthetic.make_scene("card", seed=0, size=(64, 64), n_frames=n_frames)
     assert short.frames.shape[0] == n_frames
     np.testing.assert_array_equal(short.maps[1], full.maps[1, :n_frames])
+    assert (short.layer == 1).any() == (n_frames >= 8)  # card points from an 8-frame clip on (seed 0, 64 px)
     assert short.visible[short.layer == 1, -1].all()  # picked in place on the last frame
 
 
