@@ -15,6 +15,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import numbers
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping
@@ -129,6 +130,7 @@ class Tracks:
         self._write(path, "hdf5")
 
     def _write(self, path: str | Path, expected: str) -> None:
+        check_path("path", path)
         if track_format(path, "output") != expected:
             raise CondtrackError(f"{path}: a {expected} file needs a {'.csv' if expected == 'csv' else '.h5 or .hdf5'} name")
         settings = self.config.output if self.config is not None else OutputSettings()
@@ -141,6 +143,12 @@ def check_seed(seed: Any) -> None:
         raise InvalidArgumentType(f"seed: {plain(seed)} is not a valid integer")
     if not 0 <= seed <= MAX_SEED:
         raise InvalidArgument(f"seed: {plain(seed)} is not in the range 0<=x<={MAX_SEED}")
+
+
+def check_path(name: str, value: Any) -> None:
+    """Refuse ``value`` unless it is a path (a str or os.PathLike), naming the argument ``name``."""
+    if not isinstance(value, (str, os.PathLike)):
+        raise InvalidArgumentType(f"{name}: expected a file or folder path, got {type(value).__name__}")
 
 
 def track_sequence(
@@ -220,6 +228,7 @@ def track(
     >>> t.xy.shape, done[0], done[-1]  # points detected on frame 0: no backward pass, 30 frames in all
     ((209, 30, 2), (1, 30), (30, 30))
     """
+    check_path("source", source)
     if not (isinstance(progress, bool) or callable(progress)):
         raise InvalidArgumentType(f"progress: expected True, False or a callable(done, total), got {type(progress).__name__}")
     if untrackable is not None and not isinstance(untrackable, str):
@@ -251,6 +260,7 @@ def read_tracks(path: str | Path) -> Tracks:
     >>> np.array_equal(back.xy, t.xy, equal_nan=True), back.config == t.config, back.info.width
     (True, True, 320)
     """
+    check_path("path", path)
     result, meta = io_read.read_tracks(path)
     info = types.SequenceInfo(
         input=str(meta.get("input", "")), width=int(meta.get("width", 0)), height=int(meta.get("height", 0)),

@@ -145,3 +145,17 @@ def test_bad_arguments_raise_condtrack_errors_worded_as_the_command_line(keyword
         assert done.returncode == 2
         message = str(raised.value).removeprefix("seed: ")
         assert message.replace("'", "") in done.stderr.replace("'", ""), (message, done.stderr)
+
+
+def test_a_path_argument_of_another_type_or_a_folder_is_a_condtrack_error(tmp_path):
+    """ct.read_tracks(5) and t.to_csv(None) raised pathlib's bare TypeError, ct.track(None) said 'None: no such file
+    or folder', ct.read_tracks(folder) 'no such file'; now InvalidArgumentType naming the argument, and 'not a regular
+    file' for a folder."""
+    t = ct.track(str(SAMPLE), queries=np.array([[0, 120.0, 80.0]]), method="stk")
+    for call, name in ((lambda: ct.track(None), "source"), (lambda: ct.read_tracks(5), "path"),
+                       (lambda: t.to_csv(5), "path"), (lambda: t.to_hdf5(None), "path")):
+        with pytest.raises(ct.CondtrackError, match=rf"^{name}: expected a file or folder path, got ") as raised:
+            call()
+        assert isinstance(raised.value, TypeError)
+    with pytest.raises(CondtrackError, match=r": not a regular file \(a folder\?\)$"):
+        ct.read_tracks(tmp_path)

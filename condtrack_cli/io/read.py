@@ -191,8 +191,10 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
 def read_tracks(path: str | Path) -> tuple[Tracks, dict[str, Any]]:
     """Read a .csv, .h5 or .hdf5 track file; CondtrackError naming the file on any problem."""
     path = Path(path)
-    if not path.is_file():
+    if not path.exists():
         raise MissingInput(f"{path}: no such file")
+    if not path.is_file():
+        raise CondtrackError(f"{path}: not a regular file (a folder?)")
     return _read_csv(path) if track_format(path) == "csv" else _read_hdf5(path)
 
 
