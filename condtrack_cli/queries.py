@@ -93,15 +93,15 @@ def queries_from_rows(rows: np.ndarray, info: SequenceInfo) -> Queries:
     if not np.isfinite(rows).all() or not np.all(rows[:, 0] == np.round(rows[:, 0])):
         row = int(np.argmax(~np.isfinite(rows).all(axis=1) | (rows[:, 0] != np.round(rows[:, 0]))))
         raise CondtrackError(f"queries: row {row}: frame must be a whole number and x, y finite")
-    return checked_queries("queries", np.arange(len(rows), dtype=np.int64), rows[:, 0].astype(np.int64), rows[:, 1:],
-                           info, first_row=0)
+    return checked_queries("queries", np.arange(len(rows), dtype=np.int64), rows[:, 0], rows[:, 1:], info, first_row=0)
 
 
 def checked_queries(where: str, point_id: np.ndarray, frame: np.ndarray, xy: np.ndarray, info: SequenceInfo,
                     first_row: int) -> Queries:
     """Queries ordered by point_id after checking ids, frames and positions against the sequence.
 
-    ``where`` names the source in errors, whose row i is reported as ``first_row + i``.
+    ``where`` names the source in errors, whose row i is reported as ``first_row + i``; ``frame`` holds whole
+    numbers, as integers or floats (an array's, cast once checked: a float beyond int64 would not cast).
     """
     unique_ids, counts = np.unique(point_id, return_counts=True)
     if (counts > 1).any():
@@ -109,7 +109,9 @@ def checked_queries(where: str, point_id: np.ndarray, frame: np.ndarray, xy: np.
     bad_frame = (frame < 0) | (frame >= info.n_frames)
     if bad_frame.any():
         line = int(np.argmax(bad_frame)) + first_row
-        raise CondtrackError(f"{where}: row {line}: frame {frame[line - first_row]} is outside the sequence (0..{info.n_frames - 1})")
+        raise CondtrackError(f"{where}: row {line}: frame {int(frame[line - first_row])} is outside the sequence "
+                             f"(0..{info.n_frames - 1})")
+    frame = frame.astype(np.int64)
     inside = info.contains(xy)
     if not inside.all():
         line = int(np.argmax(~inside)) + first_row

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from condtrack_cli.errors import CondtrackError
-from condtrack_cli.queries import read_queries
+from condtrack_cli.queries import queries_from_rows, read_queries
 from condtrack_cli.types import SequenceInfo
 
 INFO = SequenceInfo("clip", 64, 48, 10, 0.0)
@@ -60,3 +60,13 @@ def test_a_value_beyond_the_header_s_columns_is_refused_an_empty_trailing_cell_i
         _read(tmp_path, "frame,x,y\n0,4,5\n0,10,3,7\n")
     queries = _read(tmp_path, "frame,x,y\n0,4,5,\n1,10,3, \n")
     assert queries.point_id.tolist() == [0, 1] and queries.xy.tolist() == [[4.0, 5.0], [10.0, 3.0]]
+
+
+@pytest.mark.parametrize("frame, shown", [(1e30, "1000000000000000019884624838656"), (2.0**63, "9223372036854775808"),
+                                          (10.0, "10"), (-1.0, "-1")])
+def test_an_array_s_frame_beyond_int64_is_refused_with_its_own_value(frame, shown):
+    """A frame of 1e30 in an (N, 3) array was cast to int64 first (numpy's 'invalid value encountered in cast', an
+    error under -W error) and reported as frame -9223372036854775808; now the frame given, before any cast."""
+    with pytest.raises(CondtrackError, match=rf"^queries: row 1: frame {shown} is outside the sequence \(0\.\.9\)$"):
+        queries_from_rows(np.array([[0, 1.0, 2.0], [frame, 1.0, 2.0]]), INFO)
+    assert queries_from_rows(np.array([[9, 1.0, 2.0]], dtype=np.float32), INFO).frame.dtype == np.int64
