@@ -13,6 +13,11 @@ from typing import Any, ClassVar
 from pydantic import BaseModel, ConfigDict, model_validator
 
 
+#: The largest value OpenCV takes for an ``int`` parameter (a C int); the bound of every setting handed to one, and of
+#: ``goodFeaturesToTrack``'s ``minDistance``, which OpenCV rounds to one (a larger one crashed the process).
+OPENCV_INT_MAX = 2**31 - 1
+
+
 class StageSettings(BaseModel):
     """Base of every stage's settings: frozen, strict types, unknown keys and non-finite numbers refused.
 

@@ -69,3 +69,12 @@ def test_bad_files(tmp_path):
 def test_set_needs_key_and_value():
     with pytest.raises(CondtrackError, match="section.key=value"):
         load_config(None, ["motion.levels"])
+
+
+@pytest.mark.parametrize("key", ["detect.max_points", "detect.min_distance", "filter.stk.max_iterations"])
+def test_values_opencv_cannot_take_are_refused_naming_the_key(key):
+    """detect.max_points and filter.stk.max_iterations of 2^31 or more ended in OpenCV's argument-parsing traceback,
+    detect.min_distance=3e9 in a segmentation fault (exit 139); now refused before any work, naming the key."""
+    with pytest.raises(CondtrackError, match=rf"config key '{key}': Input should be less than or equal to 2147483647"):
+        load_config(overrides=[f"{key}={2**31}"], method="stk")
+    load_config(overrides=[f"{key}={2**31 - 1}"], method="stk")

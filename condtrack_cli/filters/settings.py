@@ -7,7 +7,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator
 
-from condtrack_cli.settings import StageSettings
+from condtrack_cli.settings import OPENCV_INT_MAX, StageSettings
 
 #: With ``lk_fallback``: frames after its last match during which a lost point is searched for around where it was
 #: last found (``reference.py``, ``ReferenceMatcher._reacquire``)
@@ -89,7 +89,7 @@ class STKSettings(StageSettings):
     covariance = False
     win_size: int = Field(21, ge=3, description="side of the Lucas-Kanade window (px)")
     levels: int = Field(4, ge=1, le=8, description="pyramid levels (OpenCV maxLevel = levels - 1; 4: OpenCV maxLevel 3)")
-    max_iterations: int = Field(30, ge=1, description="iterations per level")
+    max_iterations: int = Field(30, ge=1, le=OPENCV_INT_MAX, description="iterations per level")
     epsilon: float = Field(0.01, gt=0, description="stop when an iteration moves the point less than this (px)")
     fb_threshold: float = Field(1.0, gt=0, description="forward-backward distance above which a point is not visible (px)")
     min_eig_threshold: float = Field(1e-4, ge=0, description="OpenCV minEigThreshold: LK fails below this")
