@@ -313,6 +313,21 @@ def test_from_list_paths_are_relative_to_the_list_and_names_do_not_depend_on_the
     assert names == [["clip000_frames.h5", "clip001_frames.h5"]] * 2
 
 
+def test_a_list_s_byte_order_mark_is_skipped_and_a_list_not_utf8_or_with_no_input_is_one_error_line(clips, tmp_path):
+    """A list saved with a byte-order mark failed its first input ('\ufeffclip: no such file or folder'), a Latin-1
+    list was a UnicodeDecodeError traceback, an empty list said 'no INPUT given (..., or --from-list FILE)'."""
+    listing, out_dir = tmp_path / "clips.txt", tmp_path / "out"
+    listing.write_text(f"{clips[0]}\n", encoding="utf-8-sig")
+    assert run_cli("track", "--from-list", str(listing), "--out-dir", str(out_dir), "-m", "stk", "-q").returncode == 0
+    assert [r["status"] for r in manifest(out_dir)] == ["ok"]
+    for text, code, message in ((b"clip\xe9\n", 1, "the input list is not UTF-8 text (byte 0xe9 at offset 4)"),
+                                (b"# none yet\n\n", 2, "no input listed (only blank lines and # comments)")):
+        listing.write_bytes(text)
+        result = run_cli("track", "--from-list", str(listing), "--out-dir", str(tmp_path / "other"))
+        assert result.returncode == code and result.stderr.splitlines()[-1] == f"Error: {listing}: {message}", result.stderr
+        assert "Traceback" not in result.stderr and not (tmp_path / "other").exists()
+
+
 def test_a_scheduler_that_is_not_one_or_does_not_answer_fails_fast_and_leaves_nothing(clips, tmp_path):
     """Issues 28.11 and 28.16: a scheduler file that is not one was an AssertionError; an unreachable scheduler took
     60 s and left an empty out-dir."""

@@ -13,7 +13,7 @@ from condtrack_cli.cli.batch_options import batch_options, refuse_batch_options
 from condtrack_cli.cli.options import (FiniteFloatRange, checked, overlay_options, overlay_style, track_file_suffix,
                                        video_suffix)
 from condtrack_cli.config import Config, config_keys, load_config
-from condtrack_cli.errors import read_error, warn
+from condtrack_cli.errors import CondtrackError, read_error, warn
 from condtrack_cli.io.atomic import refuse_overwriting_inputs
 from condtrack_cli.progress import Progress, show_warnings
 from condtrack_cli.threads import requested_threads, threads_per_job, use_threads
@@ -84,7 +84,8 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     style = overlay_style(overlay_points, ellipses, ellipse_cap, overlay_path)
     inputs = list(inputs) + (_read_list(list_path) if list_path else [])
     if not inputs:
-        usage.fail("no INPUT given (a frame folder or a video file, or --from-list FILE)")
+        usage.fail(f"{list_path}: no input listed (only blank lines and # comments)" if list_path
+                   else "no INPUT given (a frame folder or a video file, or --from-list FILE)")
     in_batch = len(inputs) > 1 or out_dir is not None
     if in_batch and (output_path or overlay_path):
         usage.fail("-o and --overlay take one input; a batch writes into --out-dir")
@@ -117,8 +118,11 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
 def _read_list(path: str) -> list[str]:
     """The inputs of a --from-list file, one a line (blank lines and # comments skipped), relative to its folder."""
     try:
-        lines = Path(path).read_text(encoding="utf-8").splitlines()
+        lines = Path(path).read_text(encoding="utf-8-sig").splitlines()  # -sig: a Windows editor's byte-order mark
     except OSError as error:
         raise read_error(error, f"{path}: cannot read the input list ({error.strerror})") from None
+    except UnicodeDecodeError as error:
+        raise CondtrackError(f"{path}: the input list is not UTF-8 text (byte {error.object[error.start]:#04x} at "
+                             f"offset {error.start})") from None
     folder = os.path.dirname(path)
     return [os.path.join(folder, line.strip()) for line in lines if line.strip() and not line.lstrip().startswith("#")]
