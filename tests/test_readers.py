@@ -57,6 +57,20 @@ def test_natural_sort(tmp_path):
     assert [int(f[0, 0]) for f in source] == [20, 10, 0]
 
 
+def test_names_equal_in_natural_order_are_read_in_one_order_whatever_the_folder_lists(tmp_path, monkeypatch):
+    """frame1 and frame01 (or F1 and f1) have the same natural key: they were read in the order the file system
+    listed them, so a copy of the folder could give other tracks; now the name breaks the tie."""
+    names = ["frame1.png", "frame01.png", "F2.png", "f2.png"]
+    for k, name in enumerate(names):
+        cv2.imwrite(str(tmp_path / name), np.full((8, 8), 10 * k, np.uint8))
+    listed = sorted(tmp_path.iterdir())
+    orders = []
+    for listing in (listed, listed[::-1]):
+        monkeypatch.setattr(Path, "iterdir", lambda self, listing=listing: iter(listing))
+        orders.append([p.name for p in open_frames(FrameSettings(), tmp_path).paths])
+    assert orders[0] == orders[1] == ["F2.png", "f2.png", "frame01.png", "frame1.png"]
+
+
 def test_sixteen_bit_and_colour_conversion():
     sixteen = np.array([[0, 257, 65535, 385]], np.uint16)
     np.testing.assert_array_equal(to_gray8(sixteen, "x"), [[0, 1, 255, 1]])

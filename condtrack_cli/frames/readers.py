@@ -67,7 +67,8 @@ class FolderSource:
         broken = [p for p in entries if p.is_symlink() and not p.exists()]
         if broken:  # skipping it would shift every later frame number
             raise CondtrackError(f"{broken[0]}: a broken symbolic link (its target '{broken[0].readlink()}' does not exist)")
-        names = sorted((p.name for p in entries if p.is_file()), key=natural_key)
+        # the name itself breaks a tie (frame1 and frame01, F1 and f1), else their order would be the folder listing's
+        names = sorted((p.name for p in entries if p.is_file()), key=lambda name: (natural_key(name), name))
         images = [n for n in names if Path(n).suffix.lower() in IMAGE_EXTENSIONS]
         others = [n for n in names if Path(n).suffix.lower() not in IMAGE_EXTENSIONS and n not in SIDECAR_FILES]
         if others and settings.non_image_files == "refuse":
