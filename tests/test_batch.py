@@ -328,6 +328,16 @@ def test_a_list_s_byte_order_mark_is_skipped_and_a_list_not_utf8_or_with_no_inpu
         assert "Traceback" not in result.stderr and not (tmp_path / "other").exists()
 
 
+def test_a_manifest_that_cannot_be_written_is_refused_before_any_work(clips, tmp_path):
+    """A manifest.jsonl that is a folder (or a read-only file) ended the batch in an IsADirectoryError traceback after
+    its first output was published without a record; now one Error line naming it, before any input is tracked."""
+    out_dir = tmp_path / "out"
+    (out_dir / MANIFEST).mkdir(parents=True)
+    result = run_cli("track", *clips[:2], "--out-dir", str(out_dir), "-m", "stk", "-q")
+    assert result.returncode == 1 and result.stderr == f"Error: {out_dir / MANIFEST}: cannot write (Is a directory)\n"
+    assert [p.name for p in out_dir.iterdir()] == [MANIFEST]
+
+
 def test_a_scheduler_that_is_not_one_or_does_not_answer_fails_fast_and_leaves_nothing(clips, tmp_path):
     """Issues 28.11 and 28.16: a scheduler file that is not one was an AssertionError; an unreachable scheduler took
     60 s and left an empty out-dir."""

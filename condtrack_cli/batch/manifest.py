@@ -12,7 +12,7 @@ import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, write_error
 
 MANIFEST = "manifest.jsonl"
 
@@ -96,10 +96,21 @@ def _record_problem(record, fields: dict[str, str]) -> str | None:
     return None
 
 
+def open_manifest(out_dir: Path) -> int:
+    """A descriptor appending to the manifest, created when missing; CondtrackError naming it when it cannot be
+    written (a folder of that name, a read-only file)."""
+    try:
+        return os.open(out_dir / MANIFEST, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    except OSError as error:
+        raise write_error(out_dir / MANIFEST, error) from None
+
+
 def append_record(out_dir: Path, record: ClipRecord) -> None:
     """Append one line to the manifest with a single write (O_APPEND: shards sharing OUT_DIR do not interleave)."""
-    descriptor = os.open(out_dir / MANIFEST, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    descriptor = open_manifest(out_dir)
     try:
         os.write(descriptor, (record.to_json() + "\n").encode("utf-8"))
+    except OSError as error:
+        raise write_error(out_dir / MANIFEST, error) from None
     finally:
         os.close(descriptor)

@@ -24,7 +24,7 @@ from pathlib import Path
 
 from condtrack_cli import __version__
 from condtrack_cli.batch.job import BatchJob, job_record
-from condtrack_cli.batch.manifest import ClipRecord, read_manifest
+from condtrack_cli.batch.manifest import ClipRecord, open_manifest, read_manifest
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.hashes import config_hash, input_fingerprint, queries_hash
@@ -140,6 +140,7 @@ def plan_batch(
         raise CondtrackError(f"--out-dir '{out_dir}': cannot create the folder ({error.strerror})") from None
     if not os.access(out_dir, os.W_OK | os.X_OK):
         raise CondtrackError(f"--out-dir '{out_dir}' is not writable")
+    os.close(open_manifest(out_dir))  # a manifest that cannot take the records is refused before any work
     cwd = os.getcwd()
     jobs = [BatchJob(i, str(out_dir / f"{n}{suffix}"), config, queries_path, seed, threads, input_fingerprint(i), cwd)
             for i, n in zip(inputs, names)]
