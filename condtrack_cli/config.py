@@ -234,14 +234,15 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return path, parsed
 
 
-def _apply_override(raw: dict, path: list[str], value: Any) -> None:
+def _apply_override(raw: dict, path: list[str], value: Any, name: str) -> None:
+    """Set the key ``path`` of ``raw`` to ``value``, for the option ``name`` (``--set a.b=1``, ``--smooth``, ``-m``)."""
     node = raw
     for depth, part in enumerate(path[:-1]):
         child = node.get(part)
         if child is None:
             child = node[part] = {}
         if not isinstance(child, dict):
-            raise CondtrackError(f"--set {'.'.join(path)}: '{'.'.join(path[: depth + 1])}' is not a section")
+            raise CondtrackError(f"{name}: config key '{'.'.join(path[: depth + 1])}' is {plain(child)}, not a section")
         node = child
     node[path[-1]] = value
 
@@ -305,15 +306,15 @@ def load_config(
     raw = copy.deepcopy(raw)
     given = [(f"--set {text}", text) for text in overrides] + list((options or {}).items())
     parsed = [(name, parse_override(text)) for name, text in given]
-    for _, override in parsed:
-        _apply_override(raw, *override)
+    for name, override in parsed:
+        _apply_override(raw, *override, name)
     _warn_overridden(parsed[: len(overrides)], parsed[len(overrides) :]
                      + ([("-m", (["filter", "method"], method))] if method is not None else []))
     if method is not None:
         written = raw.get("filter")
         if isinstance(written, dict) and "method" in written:  # a bad value stays bad under -m
             check_method(written["method"])
-        _apply_override(raw, ["filter", "method"], method)
+        _apply_override(raw, ["filter", "method"], method, f"-m {method}")
     config = resolve(raw)
     for name, (key_path, _) in parsed:
         reason = _unused_because(config, key_path)

@@ -78,3 +78,15 @@ def test_values_opencv_cannot_take_are_refused_naming_the_key(key):
     with pytest.raises(CondtrackError, match=rf"config key '{key}': Input should be less than or equal to 2147483647"):
         load_config(overrides=[f"{key}={2**31}"], method="stk")
     load_config(overrides=[f"{key}={2**31 - 1}"], method="stk")
+
+
+def test_an_option_setting_a_key_under_a_value_that_is_not_a_section_names_that_option(tmp_path):
+    """A config file's 'filter: 3' with -m stk (or --smooth) said "--set filter.method: 'filter' is not a section",
+    naming a --set never typed; now the option that sets the key, and the key's value."""
+    (tmp_path / "c.yaml").write_text("filter: 3\n")
+    with pytest.raises(CondtrackError, match=r"^-m stk: config key 'filter' is 3, not a section$"):
+        load_config(tmp_path / "c.yaml", method="stk")
+    with pytest.raises(CondtrackError, match=r"^--smooth: config key 'filter' is 3, not a section$"):
+        load_config(tmp_path / "c.yaml", options={"--smooth": "filter.smooth=true"})
+    with pytest.raises(CondtrackError, match=r"^--set filter.x.y=1: config key 'filter.x' is 2, not a section$"):
+        load_config(overrides=["filter.x=2", "filter.x.y=1"])
