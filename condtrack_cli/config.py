@@ -25,7 +25,7 @@ import yaml
 from pydantic import BaseModel, Field, ValidationError
 
 from condtrack_cli import registry
-from condtrack_cli.errors import CondtrackError, plain, read_error, warn
+from condtrack_cli.errors import CondtrackError, plain, python_value, read_error, warn
 from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.settings import StageSettings
 
@@ -302,7 +302,7 @@ def load_config(
     """
     if path is not None and not isinstance(path, (str, Path, Mapping)):
         raise CondtrackError(f"config: expected a YAML path or a nested mapping, got {type(path).__name__}")
-    raw = read_yaml(path) if isinstance(path, (str, Path)) else dict(path or {})
+    raw = read_yaml(path) if isinstance(path, (str, Path)) else python_value(dict(path or {}))  # np.int64(50) is 50
     raw = copy.deepcopy(raw)
     given = [(f"--set {text}", text) for text in overrides] + list((options or {}).items())
     parsed = [(name, parse_override(text)) for name, text in given]

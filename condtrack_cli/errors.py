@@ -62,14 +62,16 @@ def write_error(path: object, error: OSError) -> CondtrackError:
 def plain(value: object) -> str:
     """``value`` for a message, as Python shows it: numpy scalars and arrays (also inside lists, tuples and dicts) as
     the plain values they hold, ``'abc'`` and ``3`` rather than ``np.str_('abc')`` and ``np.int64(3)``."""
-    return repr(_python(value))
+    return repr(python_value(value))
 
 
-def _python(value: object) -> object:
+def python_value(value: object) -> object:
+    """``value`` with every numpy scalar or array in it (also inside lists, tuples and dicts) as the plain Python
+    values it holds."""
     if type(value).__module__ == "numpy":  # a numpy scalar or array, recognised without importing numpy
         return value.tolist()
     if isinstance(value, (list, tuple)):
-        return type(value)(_python(item) for item in value)
+        return type(value)(python_value(item) for item in value)
     if isinstance(value, dict):
-        return {_python(key): _python(item) for key, item in value.items()}
+        return {python_value(key): python_value(item) for key, item in value.items()}
     return value

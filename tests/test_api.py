@@ -159,3 +159,14 @@ def test_a_path_argument_of_another_type_or_a_folder_is_a_condtrack_error(tmp_pa
         assert isinstance(raised.value, TypeError)
     with pytest.raises(CondtrackError, match=r": not a regular file \(a folder\?\)$"):
         ct.read_tracks(tmp_path)
+
+
+def test_numpy_scalars_in_a_config_mapping_are_read_as_the_values_they_hold():
+    """config={"filter": {"cnlf": {"particles": np.int64(50)}}} was refused with "Input should be a valid integer (got
+    50)", np.bool_(True) for filter.smooth with "expected true or false, got True"; now they are 50 and True."""
+    mapping = {"filter": {"smooth": np.bool_(True), "cnlf": {"particles": np.int64(50)}},
+               "detect": {"max_points": np.array([7])[0]}}
+    config = load_config(mapping, method="cnlf")
+    assert config == load_config({"filter": {"smooth": True, "cnlf": {"particles": 50}}, "detect": {"max_points": 7}},
+                                 method="cnlf")
+    assert config.filters["cnlf"].particles == 50 and config.smooth is True
