@@ -505,3 +505,13 @@ def test_the_new_tolerances_refuse_what_is_not_a_finite_number(golden, option, v
     result = CliRunner().invoke(compare_command, [str(golden), str(golden), option, value])
     assert result.exit_code == 2 and result.stdout == ""
     assert f"'{option}'" in result.stderr and "Error: " in result.stderr
+
+
+def test_the_json_report_s_non_finite_values_are_strings_as_the_help_says(golden, tmp_path):
+    """--json wrote an stk file's nan covariance as the string "nan" (strict JSON), which no doc said; --help says so."""
+    cov = make_tracks().cov.copy()
+    cov[0] = np.nan
+    code, out = compare(golden, write(tmp_path / "other.h5", edited(make_tracks(), cov=cov)), "--json")
+    values = [v for row in json.loads(out, parse_constant=lambda c: pytest.fail(c))["top"] for v in (row["a"], row["b"])]
+    assert code == 1 and "nan" in sum((v if isinstance(v, list) else [v] for v in values), [])
+    assert '"inf", "-inf" or "nan"' in " ".join(CliRunner().invoke(compare_command, ["--help"]).stdout.split())

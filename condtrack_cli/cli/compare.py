@@ -125,7 +125,8 @@ def report_json(result: Comparison, path_a: str, path_b: str) -> dict:
 @click.option("--strict", is_flag=True,
               help="The same numbers: every cell within the CSV's rounding, no flip (same machine, same build).")
 @click.option("--top", type=click.IntRange(min=0), default=10, show_default=True, help="Differences listed.")
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of the plain report.")
+@click.option("--json", "as_json", is_flag=True, help='Print one JSON object instead of the plain report (strict JSON: an infinite '
+              'or undefined value, such as an stk covariance, is the string "inf", "-inf" or "nan").')
 @click.pass_context
 def _compare(ctx: click.Context, path_a: str, path_b: str, atol_px: float | None, rtol_cov: float | None,
              max_share: float | None, max_px: float | None, visible_flips: int | None, strict: bool,
