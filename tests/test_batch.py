@@ -221,6 +221,7 @@ def test_interrupted_batch_stops_its_workers_and_publishes_nothing_after(tmp_pat
         time.sleep(0.1)
     assert not [pid for pid in workers if alive(pid)]
     assert "Traceback" not in stderr
+    assert stderr.splitlines()[-1] == "Error: interrupted"  # SIGTERM said 'Error: terminated' (README: interrupted)
 
 
 def test_a_batch_of_two_jobs_shares_the_cores_out(clips, tmp_path):

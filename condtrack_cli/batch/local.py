@@ -40,7 +40,7 @@ def sigterm_exits():
         yield
     except SystemExit as exit_:
         if exit_.code == SIGTERM_EXIT:
-            click.echo("Error: terminated", err=True)
+            click.echo("Error: interrupted", err=True)  # as for one input, and the README's batch example
         raise
     finally:
         signal.signal(signal.SIGTERM, previous)
