@@ -102,6 +102,37 @@ def test_the_innovation_tells_a_right_match_from_a_wrong_one():
     assert wrong[0] < 0.4 and wrong[1] > 0.99  # prior odds 13:1 for a wrong match; on the prediction 1:2
 
 
+def test_a_point_found_again_after_coasting_keeps_where_its_coasting_left_it_in_the_core():
+    """Two points coast one frame while the two motions part by 12 px (C' = (q + 72) I), then are matched again.
+
+    A match at the gate's edge after coasting is a look-alike near the coasted prediction
+    (P(wrong | nu) about 1), the point about where its coasting left it: that share's C' joins
+    the bounded part A (Student-t ratio 1), not the wrong-match tail, so the core spans the 12 px.
+    A match at the edge again on the next frame, the point no longer coasting, adds nothing to A.
+    """
+    gamma, n = 9.21, 2
+    model = ErrorModel(n, gamma)
+    index = np.arange(n)
+    unit = np.repeat(np.eye(2)[None], n, 0)
+    model.start(index, 0.1 * unit)
+    zero = np.zeros((n, 2))
+    none, every = np.zeros(n, bool), np.ones(n, bool)
+    model.update(index, zero, 0.1 * unit, zero, unit, none, zero, 0.1 * unit, none, np.tile([12.0, 0.0], (n, 1)))
+    z = np.array([[np.sqrt(gamma * 1.1) * 0.99, 0.0], [0.3, 0.0]])  # point 0 at the gate's edge (S = 1.1 I)
+    model.begin_frame()
+    model.update(index, zero, 0.1 * unit, z, unit, every, 0.5 * z, 0.05 * unit, none, zero)
+    coasting = (model.miss + 72.0) * np.eye(2)  # C' = (t^2 q + |d|^2 / 2) I, t = 1, d = 12 px
+    wrong = np.trace(model.bounded[0]) / np.trace(coasting)
+    assert wrong > 0.9
+    np.testing.assert_allclose(model.bounded[0], wrong * coasting, rtol=1e-12)
+    assert 0.0 < np.trace(model.bounded[1]) < np.trace(model.bounded[0])  # a likelier right match: a smaller share
+    assert model.ratio[0] > 0.5  # the either-or sets the core: nu = 2 / (1 - rho) > 4, not a tail of nu about 2
+    after = model.bounded.copy()
+    model.begin_frame()
+    model.update(index, zero, 0.1 * unit, z, unit, every, 0.5 * z, 0.05 * unit, none, zero)
+    np.testing.assert_array_equal(model.bounded, after)
+
+
 @pytest.mark.parametrize("method", ["clf", "cnlf"])
 def test_95_percent_ellipse_holds_the_truth_95_percent_of_the_time(method):
     """camera_motion sample (known warp, Gaussian noise): measured cov95 0.920 (clf), 0.934 (cnlf) at 2318541d, all finite.

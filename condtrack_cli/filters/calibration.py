@@ -64,6 +64,16 @@ The model, per point, reported covariance = g (max(lambda, 1) Sigma + D + W + C)
   dudek_03: docs/departures.md, "The re-acquisition's jump", has the counts),
   so the point is either where the find put it or about where it was
   predicted: a bounded either-or, j j^T its second moment, part of A.
+  R (issue 45): a point found again after coasting (t >= 1 frames not found).
+  The gate it is matched in lies around where coasting took it; if the match is
+  a look-alike there, the point is about where its coasting left it, within C'
+  of the prediction, not anywhere: that part of the wrong-match share,
+  P(wrong | nu) C', is a bounded either-or and joins A (its second moment is
+  already in the share; the rest of the share stays a tail). Without it a point
+  lost behind a hand or a leg and matched again on a look-alike 20-30 px from
+  the truth kept a 95 % ellipse of about 10 px, and the faces' and the camel's
+  90 and 95 % ellipses held too little (docs/departures.md, "A point found
+  again after coasting").
 - W: the walk of the reference's offset (issue 45). Each re-take of the reference
   (``reference.py``, ``refresh``) adds lambda Sigma_post, the error of the position
   it was taken at, which every later match of the new patch repeats. A re-take that
@@ -135,9 +145,9 @@ by term and weighted by each term's trace (``scale_ratio``):
   own lambda_p; lambda_p now grows the covariance instead, "Growth" above, and
   with the growth a ratio that follows lambda_p fitted no better than a constant);
 - the bounded part A of D: the aperture offset (a query that failed the
-  trackability test), a bounded slide along an edge, and the jumps of the
-  re-acquisitions (J below), a bounded either-or: ``RATIO_BOUNDED`` 1, not a
-  tail;
+  trackability test), a bounded slide along an edge, the jumps of the
+  re-acquisitions (J above) and the returns' coasting spread (R above), each a
+  bounded either-or: ``RATIO_BOUNDED`` 1, not a tail;
 - the walk W: ``RATIO_WALK``, a sum of many re-takes' offsets, most of them
   small (chosen by hand at 0.3 before the growth, bench/history.md; fitted with
   it, a tight core in a growing second moment);
@@ -185,11 +195,12 @@ FORGET = 0.5
 
 #: The Student-t's scale over its covariance, per term of the reported covariance (module docstring, "Student-t"):
 #: the filter's own max(lambda, 1) Sigma, the bounded part A of D, the rest of D, the coasting C and the walk W.
-#: Fitted together with the growth below (RATIO_BOUNDED kept) by group and method (issue 45; module docstring).
+#: Fitted together with the growth below (RATIO_BOUNDED kept) by group and method (issue 45; module docstring);
+#: RATIO_COAST refitted alone with R (0.0871 before it; docs/departures.md, "A point found again after coasting").
 RATIO_OWN = 0.103
 RATIO_BOUNDED = 1.0
 RATIO_DRIFT = 0.0005
-RATIO_COAST = 0.0871
+RATIO_COAST = 0.01
 RATIO_WALK = 0.0605
 #: Least ratio of a row (nu >= 2 / (1 - RATIO_MIN)).
 RATIO_MIN = 0.00108
@@ -344,7 +355,8 @@ class ErrorModel:
         lam = self.scale
         # Where the patch may be before this frame's match (lambda s_pred holds this frame's one-step miss; the
         # disagreement of the two motions over this frame adds to that of the frames coasted).
-        before = lam * s_pred + self._coasting(self.coasted[index], self.detour[index] + disagreement)
+        coasting = self._coasting(self.coasted[index], self.detour[index] + disagreement)  # C', px^2
+        before = lam * s_pred + coasting
         # The probability that the patch lies in the gate {nu^T S^-1 nu <= gamma} under N(predicted, before),
         # isotropic approximation: 1 - exp(-gamma s_gate / (2 s_before)); a match found when it does not is wrong.
         ratio = np.trace(S, axis1=1, axis2=2) / np.maximum(np.trace(before, axis1=1, axis2=2), 1e-12)
@@ -362,6 +374,10 @@ class ErrorModel:
         self.drift[index] += share
         traces = np.trace(share, axis1=1, axis2=2)
         self.drift_share_sums[index] += np.column_stack([traces, traces * traces])
+        # R: a point found again after coasting is where the match is or, if the match is a look-alike, about where
+        # its coasting left it: that share's C' is a bounded either-or (part of A), not a tail (module docstring).
+        returning = found & (self.coasted[index] > 0)
+        self.bounded[index[returning]] += wrong[returning, None, None] * coasting[returning]
         if jump is not None:  # J: the point is where the re-acquisition put it or where it was predicted
             either = np.where(found[:, None, None], np.einsum("ni,nj->nij", jump, jump), 0.0)
             self.drift[index] += either
