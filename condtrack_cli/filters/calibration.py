@@ -70,10 +70,10 @@ The model, per point, reported covariance = g (max(lambda, 1) Sigma + D + W + C)
   of the prediction, not anywhere: that part of the wrong-match share,
   P(wrong | nu) C', is a bounded either-or and joins A (its second moment is
   already in the share; the rest of the share stays a tail). Without it a point
-  lost behind a hand or a leg and matched again on a look-alike 20-30 px from
-  the truth kept a 95 % ellipse of about 10 px, and the faces' and the camel's
-  90 and 95 % ellipses held too little (docs/departures.md, "A point found
-  again after coasting").
+  lost behind a hand and matched again on a look-alike (dudek_03's point 2,
+  27-30 px off) kept a 95 % ellipse of 11-14 px (134-172 px with it), and the
+  faces' and the camel's 90 and 95 % ellipses held too little (docs/departures.md,
+  "A point found again after coasting").
 - W: the walk of the reference's offset (issue 45). Each re-take of the reference
   (``reference.py``, ``refresh``) adds lambda Sigma_post, the error of the position
   it was taken at, which every later match of the new patch repeats. A re-take that
