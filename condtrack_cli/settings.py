@@ -10,16 +10,22 @@ import types
 import typing
 from typing import Any, ClassVar
 
-from pydantic import BaseModel, ConfigDict, model_validator
+from pydantic import BaseModel, ConfigDict, field_validator, model_validator
 
 
-#: The largest value OpenCV takes for an ``int`` parameter (a C int); the bound of every setting handed to one, and of
-#: ``goodFeaturesToTrack``'s ``minDistance``, which OpenCV rounds to one (a larger one crashed the process).
+#: The largest value OpenCV takes for an ``int`` parameter (a C int); the bound of every integer setting handed to one.
 OPENCV_INT_MAX = 2**31 - 1
+
+#: The largest magnitude of a float setting: the trackers square and multiply them (1e200 squared overflows float64,
+#: a traceback), and none is meaningful near it (pixels, px^2, grey levels, ratios). It also keeps
+#: ``goodFeaturesToTrack``'s ``minDistance``, a float OpenCV rounds to a C int, below ``OPENCV_INT_MAX`` (3e9 crashed
+#: the process).
+MAX_FLOAT_SETTING = 1e9
 
 
 class StageSettings(BaseModel):
-    """Base of every stage's settings: frozen, strict types, unknown keys and non-finite numbers refused.
+    """Base of every stage's settings: frozen, strict types, unknown keys, non-finite numbers and floats beyond
+    ``MAX_FLOAT_SETTING`` refused.
 
     A whole number written with an exponent (``1e3``, which YAML, ``--set`` and
     Python read as the float 1000.0) is taken for an integer key; a fractional
@@ -38,6 +44,14 @@ class StageSettings(BaseModel):
     frame_windows: ClassVar[tuple[str, ...]] = ()
     filter_sections: ClassVar[tuple[str, ...]] = ()
     covariance: ClassVar[bool] = True
+
+    @field_validator("*", mode="after")
+    @classmethod
+    def _float_within_bound(cls, value: Any) -> Any:
+        """``value``, refused when a float beyond ``MAX_FLOAT_SETTING`` in magnitude."""
+        if isinstance(value, float) and abs(value) > MAX_FLOAT_SETTING:
+            raise ValueError(f"must be at most {MAX_FLOAT_SETTING:g} in magnitude")
+        return value
 
     @model_validator(mode="before")
     @classmethod

@@ -71,10 +71,11 @@ def test_set_needs_key_and_value():
         load_config(None, ["motion.levels"])
 
 
-@pytest.mark.parametrize("key", ["detect.max_points", "detect.min_distance", "filter.stk.max_iterations"])
+@pytest.mark.parametrize("key", ["detect.max_points", "filter.stk.max_iterations"])
 def test_values_opencv_cannot_take_are_refused_naming_the_key(key):
-    """detect.max_points and filter.stk.max_iterations of 2^31 or more ended in OpenCV's argument-parsing traceback,
-    detect.min_distance=3e9 in a segmentation fault (exit 139); now refused before any work, naming the key."""
+    """detect.max_points and filter.stk.max_iterations of 2^31 or more ended in OpenCV's argument-parsing traceback;
+    now refused before any work, naming the key (detect.min_distance=3e9, a segmentation fault, falls under the
+    float settings' bound below)."""
     with pytest.raises(CondtrackError, match=rf"config key '{key}': Input should be less than or equal to 2147483647"):
         load_config(overrides=[f"{key}={2**31}"], method="stk")
     load_config(overrides=[f"{key}={2**31 - 1}"], method="stk")
@@ -90,3 +91,21 @@ def test_an_option_setting_a_key_under_a_value_that_is_not_a_section_names_that_
         load_config(tmp_path / "c.yaml", options={"--smooth": "filter.smooth=true"})
     with pytest.raises(CondtrackError, match=r"^--set filter.x.y=1: config key 'filter.x' is 2, not a section$"):
         load_config(overrides=["filter.x=2", "filter.x.y=1"])
+
+
+@pytest.mark.parametrize("key", ["measure.noise_sigma", "motion.q_floor", "filter.clf.drift_check", "output.max_std",
+                                 "detect.min_distance"])
+def test_a_float_setting_beyond_1e9_is_refused_naming_the_key(key):
+    """--set filter.clf.initial_std=1e200 (or measure.noise_sigma=1e300, ...) ended in an OverflowError traceback or
+    in inf/nan covariances with RuntimeWarnings; every float setting is now at most 1e9 in magnitude."""
+    with pytest.raises(CondtrackError, match=rf"config key '{key}': Value error, must be at most 1e\+09 in magnitude"):
+        load_config(overrides=[f"{key}=1e200"], method="clf")
+    load_config(overrides=[f"{key}=1e9"], method="clf")
+
+
+def test_the_initial_std_is_at_most_a_thousand_pixels():
+    """filter.cnlf.initial_std=1e6 spread the particles so far that the CNLF's weights underflowed (an IndexError
+    traceback); a thousand pixels, larger than any frame's reach a query needs, is the bound."""
+    with pytest.raises(CondtrackError, match=r"config key 'filter.cnlf.initial_std': Input should be less than or equal to 1000"):
+        load_config(overrides=["filter.cnlf.initial_std=1001"], method="cnlf")
+    load_config(overrides=["filter.cnlf.initial_std=1000"], method="cnlf")

@@ -25,7 +25,7 @@ class ShiTomasiSettings(StageSettings):
     frame_windows = ("block",)
     max_points: int = Field(300, ge=1, le=OPENCV_INT_MAX, description="most points detected on the first frame")
     quality: float = Field(0.01, gt=0, le=1, description="keep corners whose score is at least this fraction of the best")
-    min_distance: float = Field(8.0, ge=0, le=OPENCV_INT_MAX, description="least distance between two detected points (px)")
+    min_distance: float = Field(8.0, ge=0, description="least distance between two detected points (px)")
     border: int = Field(16, ge=0, description="no point closer than this to the frame's edge (px)")
     block: int = Field(7, ge=3, le=31, description="side of the structure-tensor window (px, odd)")
     min_eigenvalue: float = Field(

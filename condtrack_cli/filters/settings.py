@@ -17,7 +17,7 @@ REACQUIRE_FRAMES = 15
 class InitialStateSettings(StageSettings):
     """Settings of every filter that carries a covariance from the query on (MDR, CLF, CNLF)."""
 
-    initial_std: float = Field(0.5, gt=0, description="std of the position at the query frame (px)")
+    initial_std: float = Field(0.5, gt=0, le=1000, description="std of the position at the query frame (px)")
 
 
 class MeasuredFilterSettings(InitialStateSettings):
