@@ -22,6 +22,22 @@ def inside_95(error: np.ndarray, cov: np.ndarray) -> float:
     return float((m2 <= CHI2_95).mean())
 
 
+def coast_then_match(gamma: float, z: np.ndarray) -> ErrorModel:
+    """An error model of len(z) points started with covariance 0.1 I, coasting one frame while the two motions
+    predict 12 px apart along x, then matched at (n, 2) ``z`` (prediction 0, S = 1.1 I) and moved half-way to it."""
+    n = len(z)
+    model = ErrorModel(n, gamma)
+    index = np.arange(n)
+    unit = np.repeat(np.eye(2)[None], n, 0)
+    model.start(index, 0.1 * unit)
+    zero = np.zeros((n, 2))
+    none, every = np.zeros(n, bool), np.ones(n, bool)
+    model.update(index, zero, 0.1 * unit, zero, unit, none, zero, 0.1 * unit, none, np.tile([12.0, 0.0], (n, 1)))
+    model.begin_frame()
+    model.update(index, zero, 0.1 * unit, z, unit, every, 0.5 * z, 0.05 * unit, none, zero)
+    return model
+
+
 def test_coasting_error_that_grows_linearly_is_covered_on_every_frame():
     """Points whose dynamics misses them by the same step w ~ N(0, q I) on every frame (parallax).
 
@@ -77,17 +93,9 @@ def test_the_innovation_tells_a_right_match_from_a_wrong_one():
     the prior alone gave both w0 = 0.93.
     """
     gamma, n = 9.21, 100
-    model = ErrorModel(n, gamma)
-    index = np.arange(n)
-    unit = np.repeat(np.eye(2)[None], n, 0)
-    model.start(index, 0.1 * unit)
-    zero = np.zeros((n, 2))
-    none, every = np.zeros(n, bool), np.ones(n, bool)
-    model.update(index, zero, 0.1 * unit, zero, unit, none, zero, 0.1 * unit, none, np.tile([12.0, 0.0], (n, 1)))
     z = np.tile([0.3, 0.0], (n, 1))
     z[0], z[1] = 0.0, [np.sqrt(gamma * 1.1) * 0.99, 0.0]  # inside the gate nu^T S^-1 nu <= gamma, S = 1.1 I
-    model.begin_frame()
-    model.update(index, zero, 0.1 * unit, z, unit, every, 0.5 * z, 0.05 * unit, none, zero)
+    model = coast_then_match(gamma, z)
     lam, S = model.scale, 1.1 * np.eye(2)
     before = lam * 0.1 + model.miss + 72.0  # lambda s_pred + C' per axis (t = 1, d = 12 px)
     prior = np.exp(-0.5 * gamma * 2.2 / (2 * before))
@@ -110,17 +118,9 @@ def test_a_point_found_again_after_coasting_keeps_where_its_coasting_left_it_in_
     the bounded part A (Student-t ratio 1), not the wrong-match tail, so the core spans the 12 px.
     A match at the edge again on the next frame, the point no longer coasting, adds nothing to A.
     """
-    gamma, n = 9.21, 2
-    model = ErrorModel(n, gamma)
-    index = np.arange(n)
-    unit = np.repeat(np.eye(2)[None], n, 0)
-    model.start(index, 0.1 * unit)
-    zero = np.zeros((n, 2))
-    none, every = np.zeros(n, bool), np.ones(n, bool)
-    model.update(index, zero, 0.1 * unit, zero, unit, none, zero, 0.1 * unit, none, np.tile([12.0, 0.0], (n, 1)))
+    gamma = 9.21
     z = np.array([[np.sqrt(gamma * 1.1) * 0.99, 0.0], [0.3, 0.0]])  # point 0 at the gate's edge (S = 1.1 I)
-    model.begin_frame()
-    model.update(index, zero, 0.1 * unit, z, unit, every, 0.5 * z, 0.05 * unit, none, zero)
+    model = coast_then_match(gamma, z)
     coasting = (model.miss + 72.0) * np.eye(2)  # C' = (t^2 q + |d|^2 / 2) I, t = 1, d = 12 px
     wrong = np.trace(model.bounded[0]) / np.trace(coasting)
     assert wrong > 0.9
@@ -129,7 +129,8 @@ def test_a_point_found_again_after_coasting_keeps_where_its_coasting_left_it_in_
     assert model.ratio[0] > 0.5  # the either-or sets the core: nu = 2 / (1 - rho) > 4, not a tail of nu about 2
     after = model.bounded.copy()
     model.begin_frame()
-    model.update(index, zero, 0.1 * unit, z, unit, every, 0.5 * z, 0.05 * unit, none, zero)
+    unit, zero, found = np.repeat(np.eye(2)[None], 2, 0), np.zeros((2, 2)), np.ones(2, bool)
+    model.update(np.arange(2), zero, 0.1 * unit, z, unit, found, 0.5 * z, 0.05 * unit, ~found, zero)
     np.testing.assert_array_equal(model.bounded, after)
 
 
