@@ -10,7 +10,7 @@ import types
 import typing
 from typing import Any, ClassVar
 
-from pydantic import BaseModel, ConfigDict, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, ValidationInfo, field_validator, model_validator
 
 
 #: The largest value OpenCV takes for an ``int`` parameter (a C int); the bound of every integer setting handed to one.
@@ -37,19 +37,21 @@ class StageSettings(BaseModel):
     only) names the other filters whose ``filter.<name>`` settings it reads, as
     the router ``auto`` reads ``clf`` and ``cnlf``; ``covariance`` (a filter's
     settings only) is False for a filter that writes no covariance (NaN), as
-    STK: ``output.max_std`` then changes nothing.
+    STK: ``output.max_std`` then changes nothing. ``unbounded_floats`` names the float fields that only compare
+    (a threshold such as ``output.max_std``, where 1e16 means "never"), exempt from ``MAX_FLOAT_SETTING``.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
     frame_windows: ClassVar[tuple[str, ...]] = ()
     filter_sections: ClassVar[tuple[str, ...]] = ()
     covariance: ClassVar[bool] = True
+    unbounded_floats: ClassVar[tuple[str, ...]] = ()
 
     @field_validator("*", mode="after")
     @classmethod
-    def _float_within_bound(cls, value: Any) -> Any:
-        """``value``, refused when a float beyond ``MAX_FLOAT_SETTING`` in magnitude."""
-        if isinstance(value, float) and abs(value) > MAX_FLOAT_SETTING:
+    def _float_within_bound(cls, value: Any, info: ValidationInfo) -> Any:
+        """``value``, refused when a float beyond ``MAX_FLOAT_SETTING`` in magnitude (``unbounded_floats`` aside)."""
+        if isinstance(value, float) and abs(value) > MAX_FLOAT_SETTING and info.field_name not in cls.unbounded_floats:
             raise ValueError(f"must be at most {MAX_FLOAT_SETTING:g} in magnitude")
         return value
 

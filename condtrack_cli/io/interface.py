@@ -21,6 +21,8 @@ from condtrack_cli.types import SequenceInfo, Tracks
 class OutputSettings(StageSettings):
     """Settings of the CSV and HDF5 writers."""
 
+    unbounded_floats = ("max_std",)  # a threshold: compared, never computed with
+
     hdf5_compression: int = Field(4, ge=0, le=9, description="gzip level of HDF5 datasets (0 = none)")
     store_measurements: bool = Field(True, description="write /measurements/z and /measurements/R to HDF5")
     store_particles: bool = Field(False, description="write the CNLF's particles to HDF5 (/particles/xy; large)")
