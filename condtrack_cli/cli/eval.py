@@ -80,7 +80,8 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
     Mahalanobis distances of the errors against the calibrated (Rayleigh) law.
     A point's query frame is the file's query (HDF5) or its first row (CSV). GT CSV rows that are
     absent are not scored. OA, AJ and jaccard_x are n/a (null) when the GT has
-    no occluded scored frame: there is then no visibility to judge. Points are
+    no occluded scored frame: there is then no visibility to judge; a metric of
+    GT-visible scored frames (delta_avg, covP, ...) is n/a when there is none. Points are
     matched by point_id; GT points missing from PRED are not scored (their count
     is reported, on stderr with --json). Frames where PRED has no position count
     as not visible and not within any threshold. Each point's query must lie
