@@ -201,6 +201,23 @@ def test_a_row_without_a_finite_position_is_refused_showing_it(tmp_path, x, y):
                                   "always finite")
 
 
+@pytest.mark.parametrize("cov_xx, cov_yy", [("-1", "1"), ("1", "-inf")])
+def test_a_negative_variance_is_refused_showing_it(tmp_path, cov_xx, cov_yy):
+    """A hand-edited negative variance was read by info, eval and render, and eval counted the row as having no
+    covariance; a variance is never negative (a covariance cov_xy may be, and nan / inf keep their meaning)."""
+    path = tmp_path / "t.csv"
+    _track_csv(path, "inf")
+    lines = path.read_text().splitlines()
+    lines[3] = lines[3].replace("10.0,20.0,1,0,1,", f"10.0,20.0,{cov_xx},0,{cov_yy},")
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(CondtrackError) as refused:
+        read_tracks(path)
+    assert str(refused.value) == (f"{path}: line 4 (point_id 0, frame 2): cov_xx, cov_yy is {cov_xx}, {cov_yy}: "
+                                  "a variance is never negative")
+    lines[3] = lines[3].replace(f"{cov_xx},0,{cov_yy},", "nan,-0.5,inf,")
+    path.write_text("\n".join(lines) + "\n")
+    read_tracks(path)
+
 @pytest.mark.parametrize("dof, value", [("2.5", 2.5), ("1e6", 1e6), ("inf", np.inf)])
 def test_a_dof_above_2_or_inf_is_read(tmp_path, dof, value):
     path = tmp_path / "t.csv"

@@ -95,6 +95,8 @@ def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
     values = np.column_stack([column[name] for name in ("x", "y", "cov_xx", "cov_xy", "cov_yy")])
     for bad, what in ((frames < 0, "frame is negative"), ((visible != 0) & (visible != 1), "visible is not 0 or 1"),
                       (~np.isfinite(values[:, :2]).all(axis=1), "x, y is {x}, {y}: a row is a position, always finite"),
+                      ((values[:, 2] < 0) | (values[:, 4] < 0), "cov_xx, cov_yy is {cov_xx}, {cov_yy}: a variance is "
+                       "never negative"),
                       (~(row_dof > 2), "dof is {dof}, expected a number above 2 or inf (Gaussian)"),
                       (repeated_rows(ids, frames), "a second row for the same point_id and frame")):
         if bad.any():
