@@ -186,17 +186,23 @@ def test_a_dof_not_above_2_is_refused_showing_the_value(tmp_path, dof):
                                   "expected a number above 2 or inf (Gaussian)")
 
 
+def _edited_track_csv(path, line: int, old: str, new: str):
+    """The three-row track CSV of ``_track_csv`` (dof inf) at ``path`` with ``old`` replaced by ``new`` on file line
+    ``line`` (the header is line 1), hand-edited; read_tracks' result."""
+    _track_csv(path, "inf")
+    lines = path.read_text().splitlines()
+    lines[line - 1] = lines[line - 1].replace(old, new)
+    path.write_text("\n".join(lines) + "\n")
+    return read_tracks(path)
+
+
 @pytest.mark.parametrize("x, y", [("nan", "20.0"), ("10.0", "inf")])
 def test_a_row_without_a_finite_position_is_refused_showing_it(tmp_path, x, y):
     """docs/schema.md: a CSV row exists only where the point has a position, always finite; a hand-edited NaN on a
     visible row was read by info, eval and render without a word."""
     path = tmp_path / "t.csv"
-    _track_csv(path, "inf")
-    lines = path.read_text().splitlines()
-    lines[2] = lines[2].replace("10.0,20.0", f"{x},{y}")
-    path.write_text("\n".join(lines) + "\n")
     with pytest.raises(CondtrackError) as refused:
-        read_tracks(path)
+        _edited_track_csv(path, 3, "10.0,20.0", f"{x},{y}")
     assert str(refused.value) == (f"{path}: line 3 (point_id 0, frame 1): x, y is {x}, {y}: a row is a position, "
                                   "always finite")
 
@@ -206,17 +212,12 @@ def test_a_negative_variance_is_refused_showing_it(tmp_path, cov_xx, cov_yy):
     """A hand-edited negative variance was read by info, eval and render, and eval counted the row as having no
     covariance; a variance is never negative (a covariance cov_xy may be, and nan / inf keep their meaning)."""
     path = tmp_path / "t.csv"
-    _track_csv(path, "inf")
-    lines = path.read_text().splitlines()
-    lines[3] = lines[3].replace("10.0,20.0,1,0,1,", f"10.0,20.0,{cov_xx},0,{cov_yy},")
-    path.write_text("\n".join(lines) + "\n")
     with pytest.raises(CondtrackError) as refused:
-        read_tracks(path)
+        _edited_track_csv(path, 4, "20.0,1,0,1,", f"20.0,{cov_xx},0,{cov_yy},")
     assert str(refused.value) == (f"{path}: line 4 (point_id 0, frame 2): cov_xx, cov_yy is {cov_xx}, {cov_yy}: "
                                   "a variance is never negative")
-    lines[3] = lines[3].replace(f"{cov_xx},0,{cov_yy},", "nan,-0.5,inf,")
-    path.write_text("\n".join(lines) + "\n")
-    read_tracks(path)
+    _edited_track_csv(path, 4, "20.0,1,0,1,", "20.0,nan,-0.5,inf,")
+
 
 @pytest.mark.parametrize("dof, value", [("2.5", 2.5), ("1e6", 1e6), ("inf", np.inf)])
 def test_a_dof_above_2_or_inf_is_read(tmp_path, dof, value):
