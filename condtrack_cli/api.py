@@ -26,7 +26,7 @@ import yaml
 from condtrack_cli import MAX_SEED, pipeline, registry, types
 from condtrack_cli.config import Config, load_config, resolve
 from condtrack_cli.detect.trackability import POLICIES, query_scores, screen_queries, trackability_settings
-from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain
+from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain, python_value
 from condtrack_cli.io import read as io_read
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.interface import OutputSettings
@@ -229,6 +229,7 @@ def track(
     ((209, 30, 2), (1, 30), (30, 30))
     """
     check_path("source", source)
+    progress, forward_only = python_value(progress), python_value(forward_only)  # np.bool_(True) is True
     if not (isinstance(progress, bool) or callable(progress)):
         raise InvalidArgumentType(f"progress: expected True, False or a callable(done, total), got {type(progress).__name__}")
     if untrackable is not None and not isinstance(untrackable, str):

@@ -170,3 +170,12 @@ def test_numpy_scalars_in_a_config_mapping_are_read_as_the_values_they_hold():
     assert config == load_config({"filter": {"smooth": True, "cnlf": {"particles": 50}}, "detect": {"max_points": 7}},
                                  method="cnlf")
     assert config.filters["cnlf"].particles == 50 and config.smooth is True
+
+
+def test_numpy_booleans_are_taken_for_forward_only_and_progress():
+    """forward_only=np.bool_(True) was refused with "expected True or False, got bool"; now it is True."""
+    source = str(SAMPLES / "ring")
+    expected = ct.track(source, method="stk", forward_only=True, progress=False)
+    given = ct.track(source, method="stk", forward_only=np.bool_(True), progress=np.bool_(False))
+    assert np.array_equal(given.xy, expected.xy, equal_nan=True)
+    assert given.config == expected.config
