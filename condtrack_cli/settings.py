@@ -38,7 +38,8 @@ class StageSettings(BaseModel):
     the router ``auto`` reads ``clf`` and ``cnlf``; ``covariance`` (a filter's
     settings only) is False for a filter that writes no covariance (NaN), as
     STK: ``output.max_std`` then changes nothing. ``unbounded_floats`` names the float fields that only compare
-    (a threshold such as ``output.max_std``, where 1e16 means "never"), exempt from ``MAX_FLOAT_SETTING``.
+    (a threshold such as ``output.max_std``, where 1e16 means "never"), exempt from ``MAX_FLOAT_SETTING``;
+    ``odd_fields`` the integer fields that must be odd (patch sides with a centre pixel; null passes).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
@@ -46,13 +47,17 @@ class StageSettings(BaseModel):
     filter_sections: ClassVar[tuple[str, ...]] = ()
     covariance: ClassVar[bool] = True
     unbounded_floats: ClassVar[tuple[str, ...]] = ()
+    odd_fields: ClassVar[tuple[str, ...]] = ()
 
     @field_validator("*", mode="after")
     @classmethod
-    def _float_within_bound(cls, value: Any, info: ValidationInfo) -> Any:
-        """``value``, refused when a float beyond ``MAX_FLOAT_SETTING`` in magnitude (``unbounded_floats`` aside)."""
+    def _within_bounds(cls, value: Any, info: ValidationInfo) -> Any:
+        """``value``, refused when a float beyond ``MAX_FLOAT_SETTING`` in magnitude (``unbounded_floats`` aside) or
+        an even number in one of ``odd_fields``."""
         if isinstance(value, float) and abs(value) > MAX_FLOAT_SETTING and info.field_name not in cls.unbounded_floats:
             raise ValueError(f"must be at most {MAX_FLOAT_SETTING:g} in magnitude")
+        if info.field_name in cls.odd_fields and value is not None and value % 2 == 0:
+            raise ValueError("must be odd")
         return value
 
     @model_validator(mode="before")

@@ -71,7 +71,8 @@ The model, per point, reported covariance = g (max(lambda, 1) Sigma + D + W + C)
   P(wrong | nu) C', is a bounded either-or and joins A (its second moment is
   already in the share; the rest of the share stays a tail). Without it a point
   lost behind a hand and matched again on a look-alike (dudek_03's point 2,
-  27-30 px off) kept a 95 % ellipse of 11-14 px (134-172 px with it), and the
+  27-30 px off) kept a 95 % ellipse of 11-14 px (134-172 px with it; read once
+  from the seed-0 track file of ``bench --versus-lk``), and the
   faces' and the camel's 90 and 95 % ellipses held too little (docs/departures.md,
   "A point found again after coasting").
 - W: the walk of the reference's offset (issue 45). Each re-take of the reference

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field
 
 from condtrack_cli.settings import OPENCV_INT_MAX, StageSettings
 
@@ -23,6 +23,7 @@ class InitialStateSettings(StageSettings):
 class MeasuredFilterSettings(InitialStateSettings):
     """Settings shared by the filters that measure a reference patch (CLF, CNLF)."""
 
+    odd_fields = ("drift_check_template",)
     nominal_r: float = Field(1.0, gt=0, description="variance sizing the search before a point has a finite R_k (px^2)")
     gate_r_min: float = Field(0.1, gt=0, description="least variance of the R sizing the search (px^2)")
     gate_r_max: float = Field(25.0, gt=0, description="largest variance of the R sizing the search (px^2)")
@@ -75,13 +76,6 @@ class MeasuredFilterSettings(InitialStateSettings):
                     "its usual residual; the measurement is not used either way (null: reported not visible, the "
                     "paper's)",
     )
-
-    @field_validator("drift_check_template")
-    @classmethod
-    def _odd(cls, value: int | None) -> int | None:
-        if value is not None and value % 2 == 0:
-            raise ValueError("must be odd")
-        return value
 
 
 class STKSettings(StageSettings):

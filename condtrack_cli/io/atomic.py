@@ -39,7 +39,7 @@ def through_links(path: str | Path) -> Path:
 def refuse_overwriting_inputs(outputs: dict[str, str | Path | None], inputs: dict[str, str | Path | None]) -> None:
     """CondtrackError when an output (option -> path) is the same file as an input (option -> path), or an image
     inside an input frame folder (a frame it would replace, or one it would add to the sequence); None is absent."""
-    from condtrack_cli.frames.readers import IMAGE_EXTENSIONS
+    from condtrack_cli.frames.readers import IMAGE_EXTENSIONS  # here: the readers load OpenCV
 
     for output_option, output in outputs.items():
         for input_option, given in inputs.items():

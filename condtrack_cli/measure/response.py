@@ -21,6 +21,7 @@ class SSDSettings(StageSettings):
     """Settings of the SSD measurement (paper §5.2)."""
 
     frame_windows = ("template",)
+    odd_fields = ("template", "support")
 
     template: int = Field(11, ge=3, le=63, description="side t of the reference patch (px, odd)")
     support: int = Field(7, ge=3, le=15, description="side n of the support W(z_k) of the response D_k (px, odd)")
@@ -49,13 +50,6 @@ class SSDSettings(StageSettings):
         description="matching cost: ssd (eq. 6), zero_mean or normalised (SSD after matching the patch's mean, and contrast)",
     )
     r_floor: float = Field(1 / 12, gt=0, description="variance added to R_k on each axis (px^2): a grid cell's spread")
-
-    @field_validator("template", "support")
-    @classmethod
-    def _odd(cls, value: int) -> int:
-        if value % 2 == 0:
-            raise ValueError("must be odd")
-        return value
 
     @field_validator("search_max")
     @classmethod
