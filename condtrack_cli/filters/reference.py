@@ -294,19 +294,19 @@ class ReferenceMatcher:
         moved = np.flatnonzero((reach >= WARP_REACH) & (reach <= room) & np.isfinite(predicted).all(axis=1))
         if not moved.size:
             return plain
-        offsets = np.arange(t) - t // 2
-        v = np.stack(np.meshgrid(offsets, offsets), axis=-1).astype(np.float64)  # (t, t, 2): (x, y) of each pixel
-        moved_inverse = inverse[moved][:, None, None]  # (m, 1, 1, 2, 2); the products written out: an einsum of
-        # this shape took longer (bench/history.md, "Ninth round")
-        source = moved_inverse[..., 0] * v[..., 0, None] + moved_inverse[..., 1] * v[..., 1, None] + side // 2
-        source = np.clip(source, 0, side - 1)
-        corner = np.minimum(np.floor(source).astype(np.intp), side - 2)
-        fx, fy = np.moveaxis(source - corner, -1, 0)
-        cx, cy = np.moveaxis(corner, -1, 0)
-        wide = self.wide[index[moved]]
-        k = np.arange(moved.size)[:, None, None]
-        warped = ((wide[k, cy, cx] * (1 - fx) + wide[k, cy, cx + 1] * fx) * (1 - fy)
-                  + (wide[k, cy + 1, cx] * (1 - fx) + wide[k, cy + 1, cx + 1] * fx) * fy).astype(np.float32)
+        offsets = np.arange(t, dtype=np.float64) - t // 2
+        vx, vy = offsets[None, None, :], offsets[None, :, None]  # each pixel's (x, y) offset, (1, t, t) by broadcast
+        moved_inverse = inverse[moved][:, :, :, None, None]  # (m, 2, 2, 1, 1)
+        centre = side // 2
+        # (m, t, t): where J^-1 v falls in the wide patch, clamped to it
+        sx = np.clip(moved_inverse[:, 0, 0] * vx + moved_inverse[:, 0, 1] * vy + centre, 0, side - 1)
+        sy = np.clip(moved_inverse[:, 1, 0] * vx + moved_inverse[:, 1, 1] * vy + centre, 0, side - 1)
+        cx, cy = (np.minimum(np.floor(source).astype(np.intp), side - 2) for source in (sx, sy))
+        fx, fy = sx - cx, sy - cy
+        at = (np.arange(moved.size)[:, None, None] * side + cy) * side + cx  # the top-left neighbour, flat index
+        wide = self.wide[index[moved]].reshape(-1)
+        warped = ((wide[at] * (1 - fx) + wide[at + 1] * fx) * (1 - fy)
+                  + (wide[at + side] * (1 - fx) + wide[at + side + 1] * fx) * fy).astype(np.float32)
         there = self.measure.templates(frame.gray, predicted[moved])
         better = self.measure.cost(warped, there) < WARP_BETTER * self.measure.cost(plain[moved], there)
         chosen = plain.copy()
