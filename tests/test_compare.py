@@ -515,3 +515,12 @@ def test_the_json_report_s_non_finite_values_are_strings_as_the_help_says(golden
     values = [v for row in json.loads(out, parse_constant=lambda c: pytest.fail(c))["top"] for v in (row["a"], row["b"])]
     assert code == 1 and "nan" in sum((v if isinstance(v, list) else [v] for v in values), [])
     assert '"inf", "-inf" or "nan"' in " ".join(CliRunner().invoke(compare_command, ["--help"]).stdout.split())
+
+
+def test_strict_json_writes_its_infinite_max_px_as_a_string(golden):
+    """--strict --json printed its tolerance max_px (no cap: inf) as the bare token Infinity, which is not JSON (a
+    strict parser, jq or JSON.parse, refuses the whole report); now the string "inf", as the help says of such values."""
+    code, out = compare(golden, golden, "--strict", "--json")
+    report = json.loads(out, parse_constant=lambda c: pytest.fail(c))
+    assert code == 0 and report["tolerances"]["max_px"] == "inf" and report["tolerances"]["atol_px"] == 1e-4
+    assert json.loads(compare(golden, golden, "--json")[1])["tolerances"]["max_px"] == 50.0

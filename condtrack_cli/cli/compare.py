@@ -33,8 +33,10 @@ def _value(value: float | int | str | list | None) -> str:
     return str(value)
 
 
-def _json_value(value: float | int | str | list | None) -> float | int | str | list | None:
-    """A value for strict JSON: a non-finite float as the string "inf", "-inf" or "nan"."""
+def _json_value(value):
+    """A value for strict JSON, lists and dicts throughout: a non-finite float as the string "inf", "-inf" or "nan"."""
+    if isinstance(value, dict):
+        return {key: _json_value(v) for key, v in value.items()}
     if isinstance(value, list):
         return [_json_value(v) for v in value]
     if isinstance(value, float) and not math.isfinite(value):
@@ -88,9 +90,9 @@ def report_lines(result: Comparison, path_a: str, path_b: str) -> list[str]:
 
 
 def report_json(result: Comparison, path_a: str, path_b: str) -> dict:
-    """The ``--json`` report as a JSON-ready dict (non-finite values as strings)."""
+    """The ``--json`` report as a JSON-ready dict (non-finite values as strings: --strict's ``max_px`` is "inf")."""
     t = result.tolerances
-    return {
+    return _json_value({
         "agree": result.agree, "a": path_a, "b": path_b,
         "n_points": result.n_points, "n_frames": result.n_frames, "fields": list(result.fields),
         "tolerances": {"atol_px": t.atol_px, "rtol_cov": t.rtol_cov, "max_share": t.max_share, "max_px": t.max_px,
@@ -100,10 +102,10 @@ def report_json(result: Comparison, path_a: str, path_b: str) -> dict:
         "near_ties": result.ties, "counts": result.counts,
         "top": [
             {"point_id": d.point_id, "frame": d.frame, "field": d.field,
-             "a": _json_value(d.a), "b": _json_value(d.b), "diff": d.diff}
+             "a": d.a, "b": d.b, "diff": d.diff}
             for d in result.top
         ],
-    }
+    })
 
 
 @click.argument("path_a", metavar="A")
@@ -167,7 +169,7 @@ def _compare(ctx: click.Context, path_a: str, path_b: str, atol_px: float | None
     fields = HDF5_FIELDS if both_hdf5 else CSV_FIELDS
     result = compare_tracks(a, b, tolerances, fields=fields, top=top)
     if as_json:
-        click.echo(json.dumps(report_json(result, path_a, path_b)))
+        click.echo(json.dumps(report_json(result, path_a, path_b), allow_nan=False))
     else:
         click.echo("\n".join(report_lines(result, path_a, path_b)))
     ctx.exit(AGREE if result.agree else DIFFER)
