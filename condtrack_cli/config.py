@@ -143,10 +143,17 @@ def _validate(prefix: str, model: type[StageSettings], params: Any) -> StageSett
         raise CondtrackError(_format_validation_error(prefix, error, model)) from None
 
 
+def _section(raw: Any) -> Any:
+    """A section as given, an empty mapping for an empty one (``filter:`` alone, YAML null); any other value, even a
+    false one (``[]``, ``0``, ``false``, ``""``), is kept for the caller to refuse as not a mapping."""
+    return {} if raw is None else raw
+
+
 def _named_section(kind: str, raw: Any) -> StageConfig:
-    raw = dict(raw or {}) if isinstance(raw, dict) or raw is None else raw
+    raw = _section(raw)
     if not isinstance(raw, dict):
         raise CondtrackError(f"config key '{kind}': expected a mapping, got {plain(raw)}")
+    raw = dict(raw)
     name = raw.pop("name", DEFAULT_NAMES[kind])
     try:
         spec = registry.get(kind, name)
@@ -162,7 +169,7 @@ def resolve(raw: Mapping[str, Any]) -> Config:
         if key not in allowed:
             raise CondtrackError(f"config key '{key}': unknown section; valid sections: {', '.join(allowed)}")
     stages = {kind: _named_section(kind, raw.get(kind)) for kind in NAMED_SECTIONS}
-    filter_raw = raw.get("filter") or {}
+    filter_raw = _section(raw.get("filter"))
     if not isinstance(filter_raw, dict):
         raise CondtrackError(f"config key 'filter': expected a mapping, got {plain(filter_raw)}")
     filter_raw = dict(filter_raw)
@@ -173,13 +180,14 @@ def resolve(raw: Mapping[str, Any]) -> Config:
         raise CondtrackError(f"config key 'filter.smooth': expected true or false, got {plain(smooth)}")
     filters = {}
     for name in registry.names("filter"):
-        filters[name] = _validate(f"filter.{name}", registry.get("filter", name).settings, filter_raw.pop(name, None) or {})
+        settings = registry.get("filter", name).settings
+        filters[name] = _validate(f"filter.{name}", settings, _section(filter_raw.pop(name, None)))
     if filter_raw:
         key = next(iter(filter_raw))
         raise CondtrackError(
             f"config key 'filter.{key}': unknown key; valid keys: method, smooth, {', '.join(registry.names('filter'))}"
         )
-    output = _validate("output", OutputSettings, raw.get("output") or {})
+    output = _validate("output", OutputSettings, _section(raw.get("output")))
     return Config(stages=stages, method=method, filters=filters, output=output, smooth=smooth)
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from condtrack_cli.config import default_yaml, load_config
@@ -109,3 +111,18 @@ def test_the_initial_std_is_at_most_a_thousand_pixels():
     with pytest.raises(CondtrackError, match=r"config key 'filter.cnlf.initial_std': Input should be less than or equal to 1000"):
         load_config(overrides=["filter.cnlf.initial_std=1001"], method="cnlf")
     load_config(overrides=["filter.cnlf.initial_std=1000"], method="cnlf")
+
+
+@pytest.mark.parametrize("text, key, shown", [
+    ("filter: []\n", "filter", "[]"), ("output: 0\n", "output", "0"), ("output: false\n", "output", "False"),
+    ("filter:\n  stk: ''\n", "filter.stk", "''"), ("filter:\n  clf: 0\n", "filter.clf", "0"),
+])
+def test_a_section_given_as_a_false_value_is_refused_like_any_other_non_mapping(tmp_path, text, key, shown):
+    """'filter: []', 'output: 0' or 'output: false' (a false value, read as "no section") ran on the defaults with no
+    word, while 'output: 5' was refused; every section that is not a mapping is now refused, naming its key. An empty
+    section (the key alone, YAML null) is still no setting."""
+    (tmp_path / "c.yaml").write_text(text)
+    with pytest.raises(CondtrackError, match=rf"^config key '{key}': expected a mapping.*, got {re.escape(shown)}$"):
+        load_config(tmp_path / "c.yaml")
+    (tmp_path / "c.yaml").write_text("filter:\n  stk:\noutput:\nmotion:\n")
+    assert load_config(tmp_path / "c.yaml") == load_config(None)
