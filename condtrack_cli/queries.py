@@ -43,12 +43,13 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
     path = Path(path)
     try:
         with path.open(newline="", encoding="utf-8-sig") as handle:  # -sig: a spreadsheet's byte-order mark
-            rows = list(csv.reader(handle))
+            reader = csv.reader(handle)
+            rows = [(reader.line_num, row) for row in reader]  # the file's line of each row (a row ends on it)
     except (OSError, UnicodeDecodeError) as error:
         raise read_error(error, f"{path}: cannot read the queries file ({error})") from None
     if not rows:
         raise CondtrackError(f"{path}: empty queries file (expected a header frame,x,y[,point_id])")
-    header = [name.strip() for name in rows[0]]
+    header = [name.strip() for name in rows[0][1]]
     for index, name in enumerate(header):
         if name not in (*REQUIRED_COLUMNS, "point_id"):
             raise CondtrackError(f"{path}: unknown column '{name}' (the header must have frame,x,y[,point_id])")
@@ -57,10 +58,11 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
     for name in REQUIRED_COLUMNS:
         if name not in header:
             raise CondtrackError(f"{path}: missing column '{name}' (the header must have frame,x,y[,point_id])")
-    body = [row for row in rows[1:] if any(cell.strip() for cell in row)]
+    body = [(line, row) for line, row in rows[1:] if any(cell.strip() for cell in row)]  # blank lines skipped
     if not body:
         raise CondtrackError(f"{path}: no query rows")
-    for line, row in enumerate(body, start=2):  # a value beyond the header's columns has no column to be read as
+    lines = np.array([line for line, _ in body], dtype=np.int64)
+    for line, row in body:  # a value beyond the header's columns has no column to be read as
         if any(cell.strip() for cell in row[len(header):]):
             raise CondtrackError(f"{path}: row {line} has {len(row)} fields, the header {len(header)}")
     columns = {name: header.index(name) for name in (*REQUIRED_COLUMNS, "point_id") if name in header}
@@ -68,7 +70,7 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
     for name, column in columns.items():
         parse = _integer if name in INTEGER_COLUMNS else float
         cells = []
-        for line, row in enumerate(body, start=2):
+        for line, row in body:
             cell = row[column] if column < len(row) else ""
             try:
                 cells.append(parse(cell))
@@ -79,7 +81,7 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
     point_id = values["point_id"] if "point_id" in values else np.arange(len(body), dtype=np.int64)
     frame = values["frame"]
     xy = np.column_stack([values["x"], values["y"]])
-    return checked_queries(str(path), point_id, frame, xy, info, first_row=2)
+    return checked_queries(str(path), point_id, frame, xy, info, lines)
 
 
 def queries_from_rows(rows: np.ndarray, info: SequenceInfo) -> Queries:
@@ -93,30 +95,32 @@ def queries_from_rows(rows: np.ndarray, info: SequenceInfo) -> Queries:
     if not np.isfinite(rows).all() or not np.all(rows[:, 0] == np.round(rows[:, 0])):
         row = int(np.argmax(~np.isfinite(rows).all(axis=1) | (rows[:, 0] != np.round(rows[:, 0]))))
         raise CondtrackError(f"queries: row {row}: frame must be a whole number and x, y finite")
-    return checked_queries("queries", np.arange(len(rows), dtype=np.int64), rows[:, 0], rows[:, 1:], info, first_row=0)
+    index = np.arange(len(rows), dtype=np.int64)
+    return checked_queries("queries", index, rows[:, 0], rows[:, 1:], info, index)
 
 
 def checked_queries(where: str, point_id: np.ndarray, frame: np.ndarray, xy: np.ndarray, info: SequenceInfo,
-                    first_row: int) -> Queries:
+                    rows: np.ndarray) -> Queries:
     """Queries ordered by point_id after checking ids, frames and positions against the sequence.
 
-    ``where`` names the source in errors, whose row i is reported as ``first_row + i``; ``frame`` holds whole
-    numbers, as integers or floats (an array's, cast once checked: a float beyond int64 would not cast).
+    ``where`` names the source in errors, which report query i as row ``rows[i]`` (a CSV's line, an array's row
+    index); ``frame`` holds whole numbers, as integers or floats (an array's, cast once checked: a float beyond
+    int64 would not cast).
     """
     unique_ids, counts = np.unique(point_id, return_counts=True)
     if (counts > 1).any():
         raise CondtrackError(f"{where}: point_id {int(unique_ids[np.argmax(counts > 1)])} appears more than once")
     bad_frame = (frame < 0) | (frame >= info.n_frames)
     if bad_frame.any():
-        line = int(np.argmax(bad_frame)) + first_row
-        raise CondtrackError(f"{where}: row {line}: frame {int(frame[line - first_row])} is outside the sequence "
+        index = int(np.argmax(bad_frame))
+        raise CondtrackError(f"{where}: row {rows[index]}: frame {int(frame[index])} is outside the sequence "
                              f"(0..{info.n_frames - 1})")
     frame = frame.astype(np.int64)
     inside = info.contains(xy)
     if not inside.all():
-        line = int(np.argmax(~inside)) + first_row
+        index = int(np.argmax(~inside))
         raise CondtrackError(
-            f"{where}: row {line}: point ({xy[line - first_row, 0]:g}, {xy[line - first_row, 1]:g}) is outside the "
+            f"{where}: row {rows[index]}: point ({xy[index, 0]:g}, {xy[index, 1]:g}) is outside the "
             f"{info.width}x{info.height} frame"
         )
     order = np.argsort(point_id, kind="stable")

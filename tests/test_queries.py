@@ -70,3 +70,16 @@ def test_an_array_s_frame_beyond_int64_is_refused_with_its_own_value(frame, show
     with pytest.raises(CondtrackError, match=rf"^queries: row 1: frame {shown} is outside the sequence \(0\.\.9\)$"):
         queries_from_rows(np.array([[0, 1.0, 2.0], [frame, 1.0, 2.0]]), INFO)
     assert queries_from_rows(np.array([[9, 1.0, 2.0]], dtype=np.float32), INFO).frame.dtype == np.int64
+
+
+@pytest.mark.parametrize("text, message", [
+    ("frame,x,y\n\n\n0,4,abc\n", r"row 4, column 'y': 'abc' is not a number"),
+    ("frame,x,y\n0,4,5\n\n0,4,5,7\n", r"row 4 has 4 fields, the header 3"),
+    ("frame,x,y\n0,4,5\n\n\n10,4,5\n", r"row 5: frame 10 is outside the sequence \(0\.\.9\)"),
+    ("frame,x,y\n\n0,4,5\n\n0,400,5\n", r"row 5: point \(400, 5\) is outside the 64x48 frame"),
+])
+def test_a_bad_row_after_blank_lines_is_named_by_its_line(tmp_path, text, message):
+    """Blank lines (skipped) shifted the row an error named: a bad value on line 4 after two blank lines was
+    reported as 'row 2'; rows are now named by their line in the file, the header being row 1."""
+    with pytest.raises(CondtrackError, match=rf"/q\.csv: {message}$"):
+        _read(tmp_path, text)
