@@ -17,7 +17,7 @@ INTEGER_COLUMNS = ("frame", "point_id")
 INT64 = np.iinfo(np.int64)
 
 
-def _integer(cell: str) -> int:
+def whole_number(cell: str) -> int:
     """``cell`` as an exact whole number in the int64 range ('12', '12.0' and '1.2e1' are 12); ValueError saying why not."""
     try:
         number = decimal.Decimal(cell.strip())
@@ -68,16 +68,16 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
     columns = {name: header.index(name) for name in (*REQUIRED_COLUMNS, "point_id") if name in header}
     values = {}
     for name, column in columns.items():
-        parse = _integer if name in INTEGER_COLUMNS else float
+        parse = whole_number if name in INTEGER_COLUMNS else float
         cells = []
         for line, row in body:
             cell = row[column] if column < len(row) else ""
             try:
                 cells.append(parse(cell))
             except ValueError as error:
-                reason = str(error) if parse is _integer else "is not a number"
+                reason = str(error) if parse is whole_number else "is not a number"
                 raise CondtrackError(f"{path}: row {line}, column '{name}': {cell!r} {reason}") from None
-        values[name] = np.array(cells, dtype=np.int64 if parse is _integer else np.float64)
+        values[name] = np.array(cells, dtype=np.int64 if parse is whole_number else np.float64)
     point_id = values["point_id"] if "point_id" in values else np.arange(len(body), dtype=np.int64)
     frame = values["frame"]
     xy = np.column_stack([values["x"], values["y"]])

@@ -380,6 +380,25 @@ def test_load_gt_csv_errors(tmp_path, rows, header, message):
     assert "gt.csv" in str(error.value)
 
 
+@pytest.mark.parametrize("cell, column", [("1e30", "frame"), ("1e19", "frame"), ("-1e19", "point_id")])
+def test_a_frame_or_point_id_beyond_64_bits_is_refused_naming_the_line(tmp_path, cell, column):
+    """A frame of 1e30 (or 1e19) was read as a float and cast to int64: numpy's 'invalid value encountered in cast'
+    and a ValueError traceback ('negative dimensions are not allowed'); now one error naming the line and value."""
+    row = {"frame": f"0,{cell},1,2,1", "point_id": f"{cell},0,1,2,1"}[column]
+    with pytest.raises(CondtrackError, match=rf"gt.csv: line 3: {column} is not .*integer: '{cell}' is outside the "
+                                             r"64-bit integer range"):
+        load_gt_csv(write_gt_csv(tmp_path / "gt.csv", ["0,0,1,2,1", row]))
+
+
+def test_point_ids_above_2_53_are_read_exactly(tmp_path):
+    """Ids were read through float64: 2^53 + 1 became 2^53, so two points were refused as one point's second row
+    (or a prediction's point 2^53 + 1 went unscored); now read as exact 64-bit integers, whole decimals still taken."""
+    big = 2**53
+    gt = load_gt_csv(write_gt_csv(tmp_path / "gt.csv", [f"{big},0,1,2,1", f"{big + 1},0,3,4,1", f"{2**63 - 1},1.0,5,6,0"]))
+    assert gt.point_id.tolist() == [big, big + 1, 2**63 - 1] and gt.known.shape == (3, 2)
+    np.testing.assert_array_equal(gt.gt_xy[:, 0], [[1, 2], [3, 4], [np.nan, np.nan]])
+
+
 def test_load_gt_csv_missing_file(tmp_path):
     with pytest.raises(CondtrackError, match="nope.csv"):
         load_gt_csv(tmp_path / "nope.csv")

@@ -40,6 +40,7 @@ import numpy as np
 
 from condtrack_cli.errors import CondtrackError, read_error
 from condtrack_cli.io.read import number_column, refuse_sparse, repeated_rows
+from condtrack_cli.queries import whole_number
 from condtrack_cli.types import Tracks
 
 #: Columns a ground-truth CSV must have.
@@ -106,6 +107,22 @@ def _refuse_rows(mask: np.ndarray, lines: np.ndarray, path: Path, what: str) -> 
         raise CondtrackError(f"{path}: line {lines[np.argmax(mask)]}: {what}")
 
 
+def _whole_column(cells: np.ndarray, lines: np.ndarray, path: Path, what: str) -> np.ndarray:
+    """(N,) str ``cells`` as exact int64 (``12``, and ``12.0`` or ``1.2e1`` too, never through a float, which rounds
+    ids above 2^53 and overflows beyond 2^63); CondtrackError ``what`` naming the line of the first other cell."""
+    try:
+        return cells.astype(np.int64)  # plain integers, the usual file: exact and vectorised
+    except (ValueError, OverflowError):
+        pass
+    values = np.empty(len(cells), np.int64)
+    for index, cell in enumerate(cells):
+        try:
+            values[index] = whole_number(str(cell))
+        except ValueError as error:
+            raise CondtrackError(f"{path}: line {lines[index]}: {what}: {str(cell).strip()!r} {error}") from None
+    return values
+
+
 def load_gt_csv(path: str | Path) -> GroundTruth:
     """Read a ground-truth CSV (see the module docstring); F = last frame with a row + 1.
 
@@ -132,18 +149,18 @@ def load_gt_csv(path: str | Path) -> GroundTruth:
         raise CondtrackError(f"{path}: line {wrong[0]} has {len(wrong[1])} fields, the header {len(header)}")
     lines = np.array([number for number, _ in body])  # (N,) file line of each row
     table = np.array([row for _, row in body], dtype=str)  # (N, C)
-    values = {name: number_column(table[:, header.index(name)], np.float64, lines, path, name) for name in GT_COLUMNS}
-    pid, frame, vis = values["point_id"], values["frame"], values["visible"]
+    values = {name: number_column(table[:, header.index(name)], np.float64, lines, path, name)
+              for name in ("x", "y", "visible")}
+    pid = _whole_column(table[:, header.index("point_id")], lines, path, "point_id is not an integer")
+    frame = _whole_column(table[:, header.index("frame")], lines, path, "frame is not a non-negative integer")
+    vis = values["visible"]
     xy = np.stack([values["x"], values["y"]], axis=-1)  # (N, 2)
-    _refuse_rows(~np.isfinite(pid) | (pid != np.round(pid)), lines, path, "point_id is not an integer")
-    _refuse_rows(~np.isfinite(frame) | (frame != np.round(frame)) | (frame < 0), lines, path,
-                 "frame is not a non-negative integer")
+    _refuse_rows(frame < 0, lines, path, "frame is not a non-negative integer")
     _refuse_rows((vis != 0) & (vis != 1), lines, path, "visible is not 0 or 1")
     _refuse_rows(np.isinf(xy).any(axis=1), lines, path, "x or y is infinite")
     _refuse_rows((vis == 1) & np.isnan(xy).any(axis=1), lines, path, "a visible row needs finite x and y")
 
-    point_id, point_index = np.unique(pid.astype(np.int64), return_inverse=True)
-    frame = frame.astype(np.int64)
+    point_id, point_index = np.unique(pid, return_inverse=True)
     refuse_sparse(path, frame, lines, len(point_id))
     n_points, n_frames = len(point_id), int(frame.max()) + 1
     _refuse_rows(repeated_rows(point_index, frame), lines, path, "a second row for the same point_id and frame")
