@@ -399,6 +399,15 @@ def test_point_ids_above_2_53_are_read_exactly(tmp_path):
     np.testing.assert_array_equal(gt.gt_xy[:, 0], [[1, 2], [3, 4], [np.nan, np.nan]])
 
 
+def test_a_byte_order_mark_before_the_header_is_ignored(tmp_path):
+    """A truth saved by a spreadsheet as "CSV UTF-8" starts with a byte-order mark, which was read as part of the first
+    column's name: 'ground-truth column(s) point_id missing from the header'; it is now skipped, as in a queries file."""
+    path = tmp_path / "gt.csv"
+    path.write_bytes("\ufeffpoint_id,frame,x,y,visible\n0,0,1,2,1\n".encode("utf-8"))
+    gt = load_gt_csv(path)
+    assert gt.point_id.tolist() == [0] and gt.gt_xy[0, 0].tolist() == [1.0, 2.0]
+
+
 def test_load_gt_csv_missing_file(tmp_path):
     with pytest.raises(CondtrackError, match="nope.csv"):
         load_gt_csv(tmp_path / "nope.csv")

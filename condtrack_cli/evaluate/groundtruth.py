@@ -130,7 +130,7 @@ def load_gt_csv(path: str | Path) -> GroundTruth:
     """
     path = Path(path)
     try:
-        with path.open(newline="", encoding="utf-8") as f:
+        with path.open(newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark
             rows = list(csv.reader(f))
     except (OSError, UnicodeDecodeError, csv.Error) as error:
         raise read_error(error, f"{path}: cannot read the ground truth ({error})") from None
