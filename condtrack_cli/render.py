@@ -28,7 +28,6 @@ for the filled dots, which cv2 cannot batch).
 
 from __future__ import annotations
 
-import contextlib
 import itertools
 import tempfile
 from dataclasses import dataclass
@@ -39,6 +38,7 @@ import cv2
 import numpy as np
 
 from condtrack_cli.errors import CondtrackError, warn, write_error
+from condtrack_cli.frames.readers import opencv_log
 from condtrack_cli.io.atomic import atomic_path, check_writable, publish, staging_folder
 from condtrack_cli.predictive import ellipse_m2
 from condtrack_cli.registry import method_codes
@@ -285,17 +285,6 @@ def _check_video(video: Path, count: int, named: Path) -> None:
         raise CondtrackError(f"{named}: the video writer stored {stored} of {count} frames (is the disk full?)")
 
 
-@contextlib.contextmanager
-def _opencv_warnings_off() -> Iterator[None]:
-    """OpenCV's log at errors only during the block."""
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
-    try:
-        yield
-    finally:
-        cv2.utils.logging.setLogLevel(level)
-
-
 def check_video_suffix(path: Path) -> None:
     """Refuse a video name whose extension is not a video container (``VIDEO_SUFFIXES``)."""
     if path.suffix.lower() not in VIDEO_SUFFIXES:
@@ -341,7 +330,7 @@ def render_overlay(tracks: Tracks, frames: Iterable[np.ndarray], out_path: str |
         if writer.isOpened():
             count = 0
             try:
-                with _opencv_warnings_off():  # a full disk gives one per frame; the run says it once
+                with opencv_log(cv2.utils.logging.LOG_LEVEL_ERROR):  # a full disk gives one per frame; the run says it once
                     for image in itertools.chain([first], images):
                         writer.write(image)
                         count += 1

@@ -111,6 +111,19 @@ def test_bad_folders(tmp_path):
         source.read(2)
 
 
+def test_a_damaged_png_gives_the_error_alone_without_opencv_s_log_lines(tmp_path, capfd):
+    """A frame whose PNG signature is followed by garbage printed OpenCV's '[ WARN:0@0.067] global grfmt_png.cpp:834
+    read_chunk ...' and '[ERROR:0@0.068] ... IHDR chunk shall be first' before condtrack's one Error line; the decoder
+    is now silent while a frame is read, and OpenCV's log level is as it was after."""
+    cv2.imwrite(str(tmp_path / "0.png"), _frames(1)[0])
+    (tmp_path / "1.png").write_bytes(b"\x89PNG\r\n\x1a\n garbage")
+    level = cv2.utils.logging.getLogLevel()
+    source = open_frames(FrameSettings(), tmp_path)
+    with pytest.raises(CondtrackError, match=r"^frame 1 \(.*1.png\): not a readable image$"):
+        source.read(1)
+    assert capfd.readouterr().err == "" and cv2.utils.logging.getLogLevel() == level
+
+
 def test_a_truncated_video_warns_that_its_container_lists_more_frames(folder_and_video, tmp_path):
     """Decoding stopped at the cut looked like the clip's end; the complete file gives no warning."""
     frames, _, video = folder_and_video

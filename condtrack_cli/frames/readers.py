@@ -14,6 +14,7 @@ labels and scene description, a README), skipped silently.
 
 from __future__ import annotations
 
+import contextlib
 import re
 from pathlib import Path
 from typing import Iterator, Literal
@@ -59,6 +60,17 @@ def to_gray8(image: np.ndarray, where: str) -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
+@contextlib.contextmanager
+def opencv_log(level: int) -> Iterator[None]:
+    """OpenCV's log at ``level`` (``cv2.utils.logging.LOG_LEVEL_*``) during the block, its former level after."""
+    former = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(level)
+    try:
+        yield
+    finally:
+        cv2.utils.logging.setLogLevel(former)
+
+
 class FolderSource:
     """A folder of image files, one frame per file."""
 
@@ -84,7 +96,8 @@ class FolderSource:
     def read(self, index: int) -> np.ndarray:
         """Frame ``index`` as (H, W) uint8."""
         path = self.paths[index]
-        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        with opencv_log(cv2.utils.logging.LOG_LEVEL_SILENT):  # a damaged file's decoder lines: the error names it
+            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if raw is None:
             raise CondtrackError(f"frame {index} ({path}): not a readable image")
         image = to_gray8(raw, f"frame {index} ({path})")
