@@ -56,6 +56,9 @@ PALETTE = {
     "cnlf": np.array((60, 60, 255)),  # red
 }
 OTHER_COLOUR = np.array((255, 0, 255))  # magenta
+#: Largest coordinate drawn (px, either axis): cv2 takes int32 coordinates with ``SHIFT`` fractional bits, so a
+#: position far off the frame (a file's 1e12) would wrap around; the marks and segments reaching it are not drawn.
+FARTHEST_PX = 2.0**20
 #: Frame rate of the video when the input has none (a folder of frames).
 DEFAULT_FPS = 25.0
 #: Codec tried for the video; when it does not open, a folder of PNGs is written instead.
@@ -123,6 +126,11 @@ def ellipse_outlines(centre: np.ndarray, cov: np.ndarray, dof: np.ndarray | floa
     return np.stack([centre[:, :1] + u * cos - v * sin, centre[:, 1:] + u * sin + v * cos], axis=-1)
 
 
+def _drawable(points: np.ndarray) -> np.ndarray:
+    """(...) bool: the positions ``points`` (..., 2) are finite and within ``FARTHEST_PX`` on both axes."""
+    return (np.abs(points) <= FARTHEST_PX).all(axis=-1)
+
+
 def _fixed(points: np.ndarray) -> np.ndarray:
     """Pixel coordinates (..., 2) -> int32 fixed point with ``SHIFT`` fractional bits."""
     return np.rint(points * (1 << SHIFT)).astype(np.int32)
@@ -135,7 +143,8 @@ def _colour(code: int, factor: float = 1.0) -> tuple[int, int, int]:
 
 
 def _polylines(image: np.ndarray, lines: np.ndarray, colour: tuple[int, int, int], closed: bool) -> None:
-    """Draw (K, V, 2) polylines given in pixels, anti-aliased, sub-pixel; nothing when K = 0."""
+    """Draw (K, V, 2) polylines given in pixels, anti-aliased, sub-pixel, but those with a vertex not ``_drawable``."""
+    lines = lines[_drawable(lines).all(axis=-1)]
     if len(lines):
         cv2.polylines(image, _fixed(lines), closed, colour, 1, cv2.LINE_AA, SHIFT)
 
@@ -176,7 +185,7 @@ class Overlay:
         image = cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)
         t = self.tracks
         xy, cov, dof, method = t.xy[:, k], t.cov[:, k], t.dof[:, k], t.method[:, k]
-        has = np.isfinite(xy).all(axis=-1) & self.shown
+        has = _drawable(xy) & self.shown
         unbounded = has & np.isinf(cov).any(axis=(1, 2))
         with_ellipse = has & np.isfinite(cov).all(axis=(1, 2)) & (self.style.ellipses != "none")
         if self.style.ellipses == "visible":
@@ -221,7 +230,7 @@ class Overlay:
     def _draw_particles(self, image: np.ndarray, particles: np.ndarray) -> None:
         """(P, N, 2) particle positions as single pixels (nearest pixel centre) inside the image."""
         points = particles.reshape(-1, 2)
-        points = points[np.isfinite(points).all(axis=-1)]
+        points = points[_drawable(points)]
         column, row = np.rint(points).astype(np.int64).T
         inside = (column >= 0) & (column < image.shape[1]) & (row >= 0) & (row < image.shape[0])
         tint = (PALETTE["cnlf"] + 255) // 2

@@ -377,3 +377,19 @@ def test_overlay_options_on_track_and_render(frames_folder, tmp_path):
     bad = CliRunner().invoke(render_command, [str(h5), str(frames_folder), "-o", str(tmp_path / "b.mp4"),
                                               "--overlay-points", "0"])
     assert bad.exit_code == 2 and "--overlay-points" in bad.output and not (tmp_path / "b.mp4").exists()
+
+
+def test_a_position_far_off_the_frame_is_left_out_of_the_drawing(frames_folder):
+    """A row at x = 1e12 (a hand-edited file, a point extrapolated far away) overflowed cv2's int32 fixed point:
+    numpy's 'invalid value encountered in cast' warning and a wrapped-around mark or trail; the marks and segments
+    reaching beyond FARTHEST_PX are now not drawn: frame 4 is drawn as if point 2 had no state there."""
+    tracks, raw = make_tracks(), raw_frames(frames_folder)
+    particles = np.full((4, N_FRAMES, 2, 2), np.nan)
+    particles[1, 4] = [[60.0, 58.0], [1e30, 58.0]]
+    far, gone = make_tracks(), make_tracks()
+    far.xy[2, 4] = [1e12, 50.0]
+    gone.xy[2, 4] = np.nan
+    for k in (4, 5):  # the point's mark on frame 4, the trail segments from it on frames 4 and 5
+        drawn = render.Overlay(far, trail=3, particles=particles).draw(k, raw[k])
+        np.testing.assert_array_equal(drawn, render.Overlay(gone, trail=3, particles=particles).draw(k, raw[k]))
+    assert (render.Overlay(tracks, particles=particles).draw(4, raw[4])[58, 60] == (render.PALETTE["cnlf"] + 255) // 2).all()
