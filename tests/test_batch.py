@@ -518,3 +518,15 @@ def test_sigterm_between_an_output_and_its_record_leaves_them_agreeing(clips, tm
     assert [r["status"] for r in records] == (["interrupted"] * 2 if moment.endswith("track_input")
                                               else ["ok", "interrupted"])
     assert sorted(p.name for p in out_dir.iterdir()) == sorted([MANIFEST, *outputs(out_dir)])  # no staging left
+
+
+def test_a_batch_output_that_is_an_existing_folder_is_refused_before_work(clips, tmp_path):
+    """OUT_DIR/clip000_frames.h5 being a folder was found only once that input was tracked: its record said 'failed:
+    ... cannot put the output in place (Is a directory)'; now one Error line before any input is tracked."""
+    out_dir = tmp_path / "out"
+    (out_dir / "clip000_frames.h5").mkdir(parents=True)
+    result = run_cli("track", *clips[:2], "--out-dir", str(out_dir), "-m", "stk", "-q")
+    assert result.returncode == 1 and result.stderr == (
+        f"Error: the output of '{clips[0]}', {out_dir / 'clip000_frames.h5'}: a folder, which an output file cannot "
+        "replace\n")
+    assert [p.name for p in out_dir.iterdir()] == ["clip000_frames.h5"]

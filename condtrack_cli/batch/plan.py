@@ -129,11 +129,14 @@ def plan_batch(
     inputs: list[str], config: Config, queries_path: str | None, out_dir: Path, suffix: str, seed: int,
     threads: int | None, shard_spec: tuple[int, int] | None = None, skip_existing: bool = False,
 ) -> BatchPlan:
-    """Name every input's output, refuse one that is the queries file, create ``out_dir``, keep this shard, and find
-    what ``skip_existing`` skips."""
+    """Name every input's output, refuse one that is the queries file or a folder, create ``out_dir``, keep this
+    shard, and find what ``skip_existing`` skips."""
     names = output_names(inputs)
-    refuse_overwriting_inputs({f"the output of '{i}',": out_dir / f"{n}{suffix}" for i, n in zip(inputs, names)},
-                              {"-p": queries_path})
+    outputs = {f"the output of '{i}',": out_dir / f"{n}{suffix}" for i, n in zip(inputs, names)}
+    refuse_overwriting_inputs(outputs, {"-p": queries_path})
+    for option, output in outputs.items():  # else found after the input's tracking, when the output is moved in place
+        if output.is_dir():
+            raise CondtrackError(f"{option} {output}: a folder, which an output file cannot replace")
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as error:
