@@ -110,3 +110,19 @@ def test_the_re_take_walk_sets_the_scale_of_the_student_t_not_only_its_tail():
     assert np.diag(model.reported[0]).min() >= 9.0
     assert model.ratio[0] == pytest.approx(RATIO_WALK, rel=1e-3)
     assert model.dof[0] == pytest.approx(2.0 / (1.0 - RATIO_WALK), rel=1e-3)
+
+
+def test_a_re_take_the_first_patch_does_not_confirm_is_not_vouched_for():
+    """The re-acquisition's first-patch search is centred where the point was last found with a reference its first
+    patch vouched for (``vouched_seen``, tests/test_fallback.py): the match of this frame, made with the query's
+    reference, is such a place; the reference re-taken 6 px off, beyond the check's reach, is not vouched for, the
+    one re-taken at the first patch's match is, and without the check (the paper's re-take at the estimate) every
+    re-take is."""
+    far, _, truth = _refresh(3.0, 5 * OFF)
+    assert not far.vouched.any()
+    np.testing.assert_array_equal(far.vouched_seen, truth + 5 * OFF)
+    near, _, truth = _refresh(3.0, OFF)
+    assert near.vouched.all()
+    np.testing.assert_array_equal(near.vouched_seen, truth + OFF)
+    unchecked, _, _ = _refresh(None, 5 * OFF)
+    assert unchecked.vouched.all()

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from condtrack_cli.filters.reference import (
+    COARSE_REACH,
     COARSE_SIDE,
     REACQUIRE_FIT,
     REACQUIRE_FRAMES,
@@ -126,10 +127,7 @@ def test_a_lost_point_whose_last_patch_is_the_occluders_is_found_again_by_its_fi
     rng = np.random.default_rng(1)
     for with_first_patch in (True, False):
         frame0, frame1, xy, reference, index, s_pred = _started()
-        assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
-        occluder = rng.normal(128, 40, reference.templates.shape).astype(np.float32)
-        reference._take(index, occluder, np.pad(occluder, [(0, 0)] + [(occluder.shape[1] // 2,) * 2] * 2, mode="edge"))
-        reference.last_patch[:] = rng.normal(128, 40, reference.last_patch.shape)
+        occluder = _on_an_occluder(reference, index, frame0, xy, s_pred, rng)
         if not with_first_patch:
             reference.anchors[:] = occluder
             reference.anchor_half[:] = reference.last_patch
@@ -142,6 +140,46 @@ def test_a_lost_point_whose_last_patch_is_the_occluders_is_found_again_by_its_fi
         np.testing.assert_allclose(found.z[found.valid], (xy + JUMP)[found.valid], atol=0.25)
         np.testing.assert_array_equal(reference.templates[found.valid], reference.anchors[found.valid])
         assert np.array_equal(reference.templates[~found.valid], occluder[~found.valid])
+
+
+def _on_an_occluder(reference: ReferenceMatcher, index: np.ndarray, frame0: Frame, xy: np.ndarray,
+                    s_pred: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """Give the points of :func:`_started` their usual residual (matched on frame 0), then a reference and a last patch
+    of noise, as an occluder that dragged them before they were lost leaves them; returns the (n, t, t) reference."""
+    assert reference.measure_in_gate(index, frame0, xy, s_pred).valid.all()  # each point's usual residual
+    occluder = rng.normal(128, 40, reference.templates.shape).astype(np.float32)
+    reference._take(index, occluder, np.pad(occluder, [(0, 0)] + [(occluder.shape[1] // 2,) * 2] * 2, mode="edge"))
+    reference.last_patch[:] = rng.normal(128, 40, reference.last_patch.shape)
+    return occluder
+
+
+def test_a_point_dragged_out_of_reach_is_searched_for_by_its_first_patch_where_that_patch_last_held():
+    """Re-acquisition by the first patch, around where the point was last found with a reference its first patch
+    vouched for (issue 45): the points were dragged by an occluder, under references re-taken there that their
+    first patch did not confirm, to 70 px left and below their query before they were lost. Where they were last
+    found then lies beyond the coarse search's reach (80 px) of where they are on frame 1; where they were last
+    found with a vouched reference (here the query) does not. Lost for 3 frames, they are found there by their first
+    patch, at their true position; with only the square around where they were last found, none is."""
+    rng = np.random.default_rng(1)
+    drag = np.array([-70.0, 70.0])
+    assert np.abs(JUMP - drag).min() > 2 * COARSE_REACH  # the square's half-side at full resolution
+    for around_the_query in (True, False):
+        frame0, frame1, xy, reference, index, s_pred = _started()
+        _on_an_occluder(reference, index, frame0, xy, s_pred, rng)
+        reference.last_seen[:] = xy + drag
+        reference.vouched[:] = False
+        np.testing.assert_array_equal(reference.vouched_seen, xy)  # taken at the query
+        if not around_the_query:
+            reference.vouched_seen[:] = reference.last_seen
+        found = reference.measure_in_gate(index, frame1, xy, s_pred, frame0, xy, np.zeros(len(xy), bool),
+                                          np.full(len(xy), 3))
+        if not around_the_query:
+            assert not found.valid.any()
+            continue
+        assert found.valid.mean() >= 0.8
+        np.testing.assert_allclose(found.z[found.valid], (xy + JUMP)[found.valid], atol=0.25)
+        np.testing.assert_array_equal(reference.templates[found.valid], reference.anchors[found.valid])
+        assert reference.vouched[found.valid].all()  # the first patch taken back is vouched for
 
 
 def test_a_point_both_searches_find_is_found_by_its_last_patch():

@@ -241,6 +241,12 @@ class ReferenceMatcher:
         #: (P, COARSE_SIDE, COARSE_SIDE) each point's patch at its query at half resolution, with ``lk_fallback``
         #: (the re-acquisition's second search, :meth:`_reacquire`)
         self.anchor_half = np.zeros((n_points, COARSE_SIDE, COARSE_SIDE), np.float32)
+        #: (P,) whether each point's reference was taken where its first patch vouched for it: at its query, at a
+        #: re-take the first patch confirmed (``_anchored``), or the first patch itself taken back (:meth:`_reacquire`)
+        self.vouched = np.zeros(n_points, bool)
+        #: (P, 2) where each point was last found with a vouched reference (px), with ``lk_fallback``: the centre of
+        #: the re-acquisition's first-patch search (:meth:`_reacquire`)
+        self.vouched_seen = np.full((n_points, 2), np.nan)
         self._halves: list[tuple[np.ndarray, HalfFrame]] = []  #: (image, its :class:`HalfFrame`) of recent frames
 
     def start(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> None:
@@ -255,8 +261,10 @@ class ReferenceMatcher:
         self.usual[index] = np.nan
         self.step[index] = np.nan
         self._remember(index, frame, xy)
+        self.vouched[index] = True
         if self.settings.lk_fallback:
             self.anchor_half[index] = self.last_patch[index]
+            self.vouched_seen[index] = xy
 
     def _take(self, index: np.ndarray, patches: np.ndarray, wide: np.ndarray | None) -> None:
         """Points ``index`` take the (n, t, t) ``patches`` as their reference, with ``warp_reference`` the (n, 2t - 1,
@@ -463,6 +471,7 @@ class ReferenceMatcher:
                 continue
             if anchor:
                 self._take(index[won], self.anchors[index[won]], self.anchor_wide[index[won]])
+                self.vouched[index[won]] = True
             m = Measurement(*(np.array(array, copy=True) for array in (m.z, m.R, m.residual, m.informative,
                                                                       _fit(m))))
             m.z[won], m.R[won] = m2.z[usable], m2.R[usable]
@@ -500,11 +509,16 @@ class ReferenceMatcher:
         point's usual residual. The points that this does not find are found, if at all, by their first patch
         (``anchor_half``), searched for in the same square and matched there with their first reference patch
         (``anchors``) under the same bound: a point dragged onto an occluder before it was lost was last found, and
-        its reference last re-taken, on the occluder, while its first patch is still the point's. That match must
+        its reference last re-taken, on the occluder, while its first patch is still the point's. Where the point was
+        last found with a reference its first patch vouched for (``vouched_seen``: its query, a re-take the drift
+        check confirmed, or its first patch taken back) lies more than 2 px from where it was last found, its first
+        patch is searched for in that square too, after the first: an occluder may have dragged the point farther
+        than the search's reach before it was lost (dudek_03, where a hand sweeping over the face drags a point 100
+        px before it is lost: docs/departures.md). That match must
         also fit the first patch clearly better (``lk_better``) than the first patch fits where the gate's match
         lies (the reference, re-taken on the occluder, fits the occluder well there). Where that match is used the
-        point takes its first patch back as its reference. Both searches, and both matches, are made for every
-        lost point at once (:meth:`_match_attempts`: the first patch's match of a point that its last patch found
+        point takes its first patch back as its reference. The searches, and their matches, are made for every
+        lost point at once (:meth:`_match_attempts`: a first patch's match of a point that an earlier attempt found
         is not used): each measurement's fixed cost is paid once, for the first-patch searches of the few points
         the last patch finds (bench/history.md, "Ninth round"). Updates as :meth:`_fallback`.
 
@@ -523,11 +537,15 @@ class ReferenceMatcher:
                     & (self.flat_cost[index[lost]] > REACQUIRE_TEXTURE * self._noise_ssd())]
         if not lost.size:
             return m, r_used
-        seen = self.last_seen[index[lost]]
-        both = coarse_search(np.concatenate([self.last_patch[index[lost]], self.anchor_half[index[lost]]]),
-                             self._half(frame), np.concatenate([seen, seen]))
-        attempts = [self._attempt(index, lost, both[: len(lost)], frame, predicted, s_pred, m, False),
-                    self._attempt(index, lost, both[len(lost):], frame, predicted, s_pred, m, True)]
+        seen, vouched = self.last_seen[index[lost]], self.vouched_seen[index[lost]]
+        elsewhere = np.flatnonzero(np.abs(vouched - seen).max(axis=1) > 2)  # the search's grain: 2 px
+        anchor_half = self.anchor_half[index[lost]]
+        found = coarse_search(np.concatenate([self.last_patch[index[lost]], anchor_half, anchor_half[elsewhere]]),
+                              self._half(frame), np.concatenate([seen, seen, vouched[elsewhere]]))
+        count = len(lost)
+        attempts = [self._attempt(index, lost, found[:count], frame, predicted, s_pred, m, False),
+                    self._attempt(index, lost, found[count : 2 * count], frame, predicted, s_pred, m, True),
+                    self._attempt(index, lost[elsewhere], found[2 * count :], frame, predicted, s_pred, m, True)]
         return self._match_attempts(index, attempts, frame, predicted, s_pred, m, r_used, valid, shown, shift,
                                     REACQUIRE_FIT, REACQUIRE_REACH)
 
@@ -592,6 +610,9 @@ class ReferenceMatcher:
         s = self.settings
         self.step[index] = np.where((found_before & measured.valid)[:, None], x_post - x_prev, np.nan)
         self._remember(index[measured.valid], frame, x_post[measured.valid])
+        if s.lk_fallback:
+            vouched = index[measured.valid & self.vouched[index]]
+            self.vouched_seen[vouched] = x_post[measured.valid & self.vouched[index]]
         retaken = np.zeros(len(index), bool)
         self.offset_floor[index] = 0.0
         if not s.reference_update:
@@ -606,6 +627,7 @@ class ReferenceMatcher:
         steady = self.measure.cost(patches, before) <= s.update_abruptness * measured.residual[candidates]
         self._take(index[candidates[steady]], patches[steady], self._wide_patches(frame, at[steady]))
         retaken[candidates[steady]] = True
+        self.vouched[index[candidates[steady]]] = anchored[steady] | (s.drift_check is None)
         if s.drift_check is not None:
             radius = np.where(anchored, np.linalg.norm(at - x_post[candidates], axis=1), s.drift_check)
             self.offset_floor[index[candidates[steady]]] = radius[steady] ** 2 / 4

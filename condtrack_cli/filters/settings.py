@@ -62,7 +62,8 @@ class MeasuredFilterSettings(InitialStateSettings):
                     "pyramidal Lucas-Kanade moves it, where its last measured step carries it, then where a coarse "
                     "search at half resolution finds its patch, with the same tests; a point lost for 1 to "
                     f"{REACQUIRE_FRAMES} frames is searched for around where it was last found, by its last patch then "
-                    "by its first (false: the gate around the prediction only, the paper's)",
+                    "by its first, and by its first around where it was last found with a reference that patch vouched for "
+                    "(false: the gate around the prediction only, the paper's)",
     )
     lk_better: float = Field(
         0.5, gt=0,
