@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from typing import Any
 
 import click
 
@@ -33,7 +34,7 @@ def _value(value: float | int | str | list | None) -> str:
     return str(value)
 
 
-def _json_value(value):
+def _json_value(value: Any) -> Any:
     """A value for strict JSON, lists and dicts throughout: a non-finite float as the string "inf", "-inf" or "nan"."""
     if isinstance(value, dict):
         return {key: _json_value(v) for key, v in value.items()}
