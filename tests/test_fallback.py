@@ -20,6 +20,7 @@ from condtrack_cli.filters.reference import (
     REACQUIRE_FRAMES,
     REACQUIRE_REACH,
     REACQUIRE_TEXTURE,
+    GatedMeasurement,
     HalfFrame,
     ReferenceMatcher,
     coarse_centres,
@@ -131,15 +132,9 @@ def test_a_lost_point_whose_last_patch_is_the_occluders_is_found_again_by_its_fi
         if not with_first_patch:
             reference.anchors[:] = occluder
             reference.anchor_half[:] = reference.last_patch
-        found = reference.measure_in_gate(index, frame1, xy, s_pred, frame0, xy, np.zeros(len(xy), bool),
-                                          np.full(len(xy), 3))
-        if not with_first_patch:
-            assert not found.valid.any()
-            continue
-        assert found.valid.mean() >= 0.8
-        np.testing.assert_allclose(found.z[found.valid], (xy + JUMP)[found.valid], atol=0.25)
-        np.testing.assert_array_equal(reference.templates[found.valid], reference.anchors[found.valid])
-        assert np.array_equal(reference.templates[~found.valid], occluder[~found.valid])
+        found = _lost_for_three_frames(reference, index, frame0, frame1, xy, s_pred, with_first_patch)
+        if with_first_patch:
+            assert np.array_equal(reference.templates[~found.valid], occluder[~found.valid])
 
 
 def _on_an_occluder(reference: ReferenceMatcher, index: np.ndarray, frame0: Frame, xy: np.ndarray,
@@ -151,6 +146,22 @@ def _on_an_occluder(reference: ReferenceMatcher, index: np.ndarray, frame0: Fram
     reference._take(index, occluder, np.pad(occluder, [(0, 0)] + [(occluder.shape[1] // 2,) * 2] * 2, mode="edge"))
     reference.last_patch[:] = rng.normal(128, 40, reference.last_patch.shape)
     return occluder
+
+
+def _lost_for_three_frames(reference: ReferenceMatcher, index: np.ndarray, frame0: Frame, frame1: Frame,
+                           xy: np.ndarray, s_pred: np.ndarray, first_patch_finds: bool) -> GatedMeasurement:
+    """The measurement on frame 1 of the points of :func:`_started`, lost for 3 frames and predicted where they were,
+    checked: with ``first_patch_finds``, at least 80 % found at their true position, by their first patch, which they
+    take back as their reference; else none found."""
+    found = reference.measure_in_gate(index, frame1, xy, s_pred, frame0, xy, np.zeros(len(xy), bool),
+                                      np.full(len(xy), 3))
+    if not first_patch_finds:
+        assert not found.valid.any()
+        return found
+    assert found.valid.mean() >= 0.8
+    np.testing.assert_allclose(found.z[found.valid], (xy + JUMP)[found.valid], atol=0.25)
+    np.testing.assert_array_equal(reference.templates[found.valid], reference.anchors[found.valid])
+    return found
 
 
 def test_a_point_dragged_out_of_reach_is_searched_for_by_its_first_patch_where_that_patch_last_held():
@@ -171,14 +182,7 @@ def test_a_point_dragged_out_of_reach_is_searched_for_by_its_first_patch_where_t
         np.testing.assert_array_equal(reference.vouched_seen, xy)  # taken at the query
         if not around_the_query:
             reference.vouched_seen[:] = reference.last_seen
-        found = reference.measure_in_gate(index, frame1, xy, s_pred, frame0, xy, np.zeros(len(xy), bool),
-                                          np.full(len(xy), 3))
-        if not around_the_query:
-            assert not found.valid.any()
-            continue
-        assert found.valid.mean() >= 0.8
-        np.testing.assert_allclose(found.z[found.valid], (xy + JUMP)[found.valid], atol=0.25)
-        np.testing.assert_array_equal(reference.templates[found.valid], reference.anchors[found.valid])
+        found = _lost_for_three_frames(reference, index, frame0, frame1, xy, s_pred, around_the_query)
         assert reference.vouched[found.valid].all()  # the first patch taken back is vouched for
 
 
