@@ -101,6 +101,10 @@ def test_config_mapping_is_validated_like_the_yaml(tmp_path):
     with pytest.raises(CondtrackError, match=r"a csv file needs a \.csv name"):
         ct.track(str(SAMPLE), queries=str(SAMPLE / "queries.csv"), config={"filter": {"method": "mdr"}}).to_csv(
             tmp_path / "x.h5")
+    (tmp_path / "file.h5").write_bytes(b"")  # a file named as the output's folder
+    with pytest.raises(CondtrackError, match=r"the output folder '.*file\.h5' is not a folder"):
+        ct.track(str(SAMPLE), queries=str(SAMPLE / "queries.csv"), config={"filter": {"method": "mdr"}}).to_csv(
+            tmp_path / "file.h5" / "x.csv")
     (tmp_path / "c.yaml").write_text("filter: {method: mdr}\n")
     from_yaml = ct.track(str(SAMPLE), queries=str(SAMPLE / "queries.csv"), config=tmp_path / "c.yaml")
     from_dict = ct.track(str(SAMPLE), queries=str(SAMPLE / "queries.csv"), config={"filter": {"method": "mdr"}})

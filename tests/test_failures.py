@@ -84,6 +84,10 @@ def test_config_failures(tmp_path, yaml_text, extra, message):
 def test_output_folder_failures(tmp_path, monkeypatch):
     result = run_cli("track", str(SAMPLE), "-o", str(tmp_path / "missing" / "out.csv"))
     _assert_clean_failure(result, "does not exist", tmp_path)
+    (tmp_path / "a.h5").write_bytes(b"")  # a file named as the output's folder
+    result = run_cli("track", str(SAMPLE), "-o", str(tmp_path / "a.h5" / "out.csv"))
+    _assert_clean_failure(result, f"the output folder '{tmp_path / 'a.h5'}' is not a folder", tmp_path)
+    (tmp_path / "a.h5").unlink()
     # Tests run as root, who may write anywhere: simulate a read-only folder in process.
     import condtrack_cli.run
 

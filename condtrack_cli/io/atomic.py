@@ -54,13 +54,21 @@ def refuse_overwriting_inputs(outputs: dict[str, str | Path | None], inputs: dic
                                      "writing it would destroy the input")
 
 
-@contextlib.contextmanager
-def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path in ``path``'s folder; rename it to ``path`` on success, delete it otherwise."""
+def output_folder(path: str | Path) -> tuple[Path, Path]:
+    """``path`` through its links and the folder it goes in; CondtrackError where that folder is missing or is not a
+    folder (a file named as one)."""
     path = through_links(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
-        raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")
+        reason = "is not a folder" if folder.exists() else "does not exist"
+        raise CondtrackError(f"{path}: the output folder '{folder}' {reason}")
+    return path, folder
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """Yield a temporary path in ``path``'s folder; rename it to ``path`` on success, delete it otherwise."""
+    path, folder = output_folder(path)
     # Held from before the file exists: a signal between its creation and the clean-up's start left it behind.
     with held_signals() as held:  # a stop signal during the write: the file is discarded, then the signal acts
         try:
@@ -87,10 +95,7 @@ def staging_folder(path: str | Path) -> Iterator[Path]:
     the built item's name (a video keeps its extension, which OpenCV reads) and
     build a folder as well as a file.
     """
-    path = through_links(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")
+    path, folder = output_folder(path)
     with contextlib.ExitStack() as cleanup:
         with held_signals():  # the folder and its clean-up come into being together, whatever signal arrives
             try:
@@ -126,10 +131,7 @@ def check_writable(path: str | Path) -> None:
     and a read-only file system fails none): a temporary file is created and
     removed.
     """
-    path = through_links(path)
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise CondtrackError(f"{path}: the output folder '{folder}' does not exist")
+    path, folder = output_folder(path)
     try:
         with tempfile.TemporaryFile(dir=folder):
             pass
