@@ -164,6 +164,18 @@ def test_two_shards_cover_the_inputs_once_with_the_names_of_the_whole_list(clips
     assert sorted(outputs(out_dir)) == [f"clip{i:03d}_frames.h5" for i in range(4)]
 
 
+def test_a_shard_with_no_input_says_so_and_succeeds(clips, tmp_path):
+    """More shards than inputs (a CI matrix wider than today's clip list): the empty shard tracks nothing, exits 0 and
+    says why on stderr (not under -q)."""
+    out_dir = tmp_path / "tracks"
+    result = run_cli("track", clips[0], "-m", "stk", "--out-dir", str(out_dir), "--shard", "1/2")
+    assert result.returncode == 0, result.stderr
+    assert "warning: --shard 1/2: none of the 1 input(s) is in this shard (it takes inputs 1, 3, ..." in result.stderr
+    assert not outputs(out_dir)
+    quiet = run_cli("track", clips[0], "-m", "stk", "--out-dir", str(out_dir), "--shard", "1/2", "-q")
+    assert quiet.returncode == 0 and quiet.stderr == ""
+
+
 def _batch_signal_run(clips: list[str], out_dir: Path, sig: int) -> tuple[int, str, set, set, list[int]]:
     """Run a -j 2 batch, send ``sig`` once the first input is done; (exit code, stderr, outputs at the signal, after, worker pids)."""
     process = subprocess.Popen(

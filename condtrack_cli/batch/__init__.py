@@ -57,6 +57,10 @@ def run_batch(
     with connection as client:
         plan = plan_batch(inputs, config, queries_path, Path(out_dir), f".{batch_format}", seed, per_job, shard,
                           skip_existing)
+        if shard is not None and not plan.jobs and not quiet:  # more shards than inputs: nothing to do, not an error
+            index, count = shard
+            click.echo(f"warning: --shard {index}/{count}: none of the {len(inputs)} input(s) is in this shard "
+                       f"(it takes inputs {index}, {index + count}, ... of the list, counted from 0)", err=True)
         progress = ClipProgress(len(plan.jobs), quiet)
         records: dict[str, ClipRecord] = {}
 
