@@ -51,6 +51,15 @@ def test_input_failures(tmp_path):
     _assert_clean_failure(run_cli("track", str(mixed), "-o", str(out)), "frame 2 (", tmp_path)
     (mixed / "002.png").write_bytes((mixed / "001.png").read_bytes()[:60])  # truncated PNG
     _assert_clean_failure(run_cli("track", str(mixed), "-o", str(out)), "frame 2 (", tmp_path)
+    jpegs = tmp_path / "jpegs"
+    jpegs.mkdir()
+    for k, frame in enumerate(sorted(mixed.iterdir())[:2]):
+        cv2.imwrite(str(jpegs / f"{k:03d}.jpg"), cv2.imread(str(frame), cv2.IMREAD_GRAYSCALE)[:, :48])
+    full = (jpegs / "001.jpg").read_bytes()
+    (jpegs / "001.jpg").write_bytes(full[: len(full) // 2])  # cut short: libjpeg would decode it, half grey
+    result = run_cli("track", str(jpegs), "-o", str(out))
+    _assert_clean_failure(result, "frame 1 (", tmp_path)
+    assert "the JPEG file is cut short" in result.stderr and len(result.stderr.strip().splitlines()) == 1
     video = tmp_path / "clip.avi"
     video.write_bytes(b"RIFF....AVI garbage")
     _assert_clean_failure(run_cli("track", str(video), "-o", str(out)), "clip.avi: not a readable video", tmp_path)

@@ -60,6 +60,27 @@ def to_gray8(image: np.ndarray, where: str) -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
+#: Suffixes of the JPEG files whose end :func:`cut_short` checks.
+JPEG_EXTENSIONS = (".jpg", ".jpeg")
+#: Bytes at the end of a JPEG file in which :func:`cut_short` looks for the end-of-image marker (a camera may append
+#: its own data after it).
+JPEG_TAIL = 65536
+
+
+def cut_short(path: Path) -> bool:
+    """Whether ``path`` is a JPEG file (it starts with the start-of-image marker FF D8) with no end-of-image marker
+    (FF D9) in its last ``JPEG_TAIL`` bytes: a copy or a download cut short, which libjpeg decodes anyway, the
+    missing rows grey (with only a line on stderr). A file that cannot be read is left to the decoder."""
+    try:
+        with path.open("rb") as handle:
+            if handle.read(2) != b"\xff\xd8":
+                return False
+            handle.seek(max(handle.seek(0, 2) - JPEG_TAIL, 0))
+            return b"\xff\xd9" not in handle.read()
+    except OSError:
+        return False
+
+
 @contextlib.contextmanager
 def opencv_log(level: int) -> Iterator[None]:
     """OpenCV's log at ``level`` (``cv2.utils.logging.LOG_LEVEL_*``) during the block, its former level after."""
@@ -96,6 +117,9 @@ class FolderSource:
     def read(self, index: int) -> np.ndarray:
         """Frame ``index`` as (H, W) uint8."""
         path = self.paths[index]
+        if path.suffix.lower() in JPEG_EXTENSIONS and cut_short(path):  # before libjpeg decodes it anyway
+            raise CondtrackError(f"frame {index} ({path}): the JPEG file is cut short (no end-of-image marker in its "
+                                 "last 64 KiB); its decoder would fill the missing part with grey")
         with opencv_log(cv2.utils.logging.LOG_LEVEL_SILENT):  # a damaged file's decoder lines: the error names it
             raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if raw is None:
