@@ -272,7 +272,9 @@ def read_yaml(path: str | Path) -> dict:
     except yaml.YAMLError as error:
         mark = getattr(error, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark else ""
-        raise CondtrackError(f"config file {str(path)!r} is not valid YAML{where}") from None
+        said = [part for part in (getattr(error, "context", None), getattr(error, "problem", None)) if part]
+        why = f": {', '.join(said)}" if said else ""  # PyYAML's words: a second '---' "expected a single document ..."
+        raise CondtrackError(f"config file {str(path)!r} is not valid YAML{where}{why}") from None
     if raw is None:
         return {}
     if not isinstance(raw, dict):

@@ -69,6 +69,9 @@ def test_input_failures(tmp_path):
     "yaml_text, extra, message",
     [
         ("motion: {levels: [\n", [], "not valid YAML"),
+        # a second YAML document: PyYAML's words say what is wrong, not only where
+        ("measure: {template: 11}\n---\nmotion: {levels: 3}\n", [],
+         "not valid YAML at line 2: expected a single document in the stream, but found another document"),
         ("motion: {levelz: 3}\n", [], "'motion.levelz': unknown key"),
         ("filter: {stk: {win_size: big}}\n", [], "'filter.stk.win_size'"),
         ("filter: {stk: {fb_threshold: -1}}\n", [], "'filter.stk.fb_threshold'"),
