@@ -164,6 +164,7 @@ def track_sequence(
     counts the forward pass's frames and the backward pass's (the frames up to the last query frame).
     """
     check_seed(seed)
+    seed = int(seed)  # np.int32(3) or np.uint8(3) is the seed 3, written as the file's int64 like any seed
     given = queries
     frames_stage = config.stage("frames")
     source = registry.get("frames", frames_stage.name).factory(frames_stage.settings, str(input_path))

@@ -183,3 +183,15 @@ def test_numpy_booleans_are_taken_for_forward_only_and_progress():
     given = ct.track(source, method="stk", forward_only=np.bool_(True), progress=np.bool_(False))
     assert np.array_equal(given.xy, expected.xy, equal_nan=True)
     assert given.config == expected.config
+
+
+def test_a_numpy_integer_seed_writes_the_file_a_plain_seed_writes(tmp_path):
+    """seed=np.int32(3) or np.uint8(3) wrote the HDF5 root attribute ``seed`` as int32 or uint8 (docs/schema.md: int64),
+    so the file differed byte for byte from ``--seed 3``'s; now the seed is the int it holds, the file the same."""
+    source, queries = str(SAMPLES / "ring"), np.array([[0, 40.0, 40.0]])
+    ct.track(source, queries=queries, method="mdr", seed=3).to_hdf5(tmp_path / "plain.h5")
+    for seed in (np.int32(3), np.uint8(3), np.int64(3)):
+        t = ct.track(source, queries=queries, method="mdr", seed=seed)
+        assert type(t.attributes["seed"]) is int
+        t.to_hdf5(tmp_path / "numpy.h5")
+        assert (tmp_path / "numpy.h5").read_bytes() == (tmp_path / "plain.h5").read_bytes(), type(seed)
