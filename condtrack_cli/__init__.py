@@ -28,6 +28,10 @@ COORDINATES = (
 #: The Python API (``condtrack_cli.api``), imported on first use so that ``import condtrack_cli`` stays light.
 _API = ("track", "read_tracks", "Tracks")
 
+#: The public names, the lazy ones included: ``from condtrack_cli import *``, ``dir(ct)`` and a notebook's completion.
+__all__ = ["track", "read_tracks", "Tracks", "CondtrackError", "CondtrackWarning", "MAX_SEED", "SCHEMA_VERSION",
+           "READABLE_SCHEMA_VERSIONS", "COORDINATES"]
+
 
 def __getattr__(name: str):
     if name in _API:
@@ -35,3 +39,7 @@ def __getattr__(name: str):
 
         return getattr(api, name)
     raise AttributeError(f"module 'condtrack_cli' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_API))

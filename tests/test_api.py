@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import re
 import subprocess
 import sys
@@ -195,3 +196,14 @@ def test_a_numpy_integer_seed_writes_the_file_a_plain_seed_writes(tmp_path):
         assert type(t.attributes["seed"]) is int
         t.to_hdf5(tmp_path / "numpy.h5")
         assert (tmp_path / "numpy.h5").read_bytes() == (tmp_path / "plain.h5").read_bytes(), type(seed)
+
+
+def test_the_lazy_api_names_are_listed_by_dir_and_star_import():
+    """dir(ct) (a notebook's tab completion, help(ct)) and ``from condtrack_cli import *`` left out track, read_tracks
+    and Tracks, which are imported on first use; now both list them, and the star import binds them."""
+    code = ("import json, condtrack_cli as ct\nnames = dir(ct)\nfrom condtrack_cli import *\n"
+            "print(json.dumps([names, track is ct.track, read_tracks is ct.read_tracks, Tracks is ct.Tracks]))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    names, *bound = json.loads(done.stdout)
+    assert {"track", "read_tracks", "Tracks", "CondtrackError"} <= set(names) and bound == [True, True, True]
