@@ -59,6 +59,8 @@ class Tracks:
     ((2, 30, 2), (2, 30, 2, 2), (2, 30), 30)
     >>> t.method.tolist(), t.queries.frame.tolist(), t.attributes["seed"]
     (['clf', 'clf'], [0, 5], 0)
+    >>> t  # the shapes and what made them, not the arrays
+    Tracks(2 points x 30 frames, clf 2, input 'sample_sequences/occlusion' 320x240 px, seed 0)
     """
 
     result: types.Tracks
@@ -103,6 +105,15 @@ class Tracks:
     def queries(self) -> types.Queries:
         """The query of each point: ``point_id`` (P,), ``frame`` (P,), ``xy`` (P, 2) px."""
         return self.result.queries
+
+    def __repr__(self) -> str:
+        """One line: points x frames, the points per method, the input and its frame size (an HDF5 file's or a run's),
+        the seed; the arrays, the config and the hashes stay out (a notebook cell ending with ``t`` showed them all)."""
+        n_points, n_frames = self.xy.shape[:2]
+        parts = [f"{n_points} points x {n_frames} frames"] + ([self.result.method_split()] if n_points else [])
+        parts += [f"input {self.info.input!r} {self.info.width}x{self.info.height} px"] if self.info.width else []
+        parts += [f"seed {self.attributes['seed']}"] if "seed" in self.attributes else []
+        return f"Tracks({', '.join(parts)})"
 
     def to_csv(self, path: str | Path) -> None:
         """Write the long CSV (docs/schema.md) to ``path`` (a .csv name), atomically.

@@ -161,3 +161,12 @@ class Tracks:
         names = np.array(codes + ("",), dtype=object)
         best = np.where(counts.any(axis=1), counts.argmax(axis=1), len(codes))
         return list(names[best])
+
+    def method_split(self) -> str:
+        """How many points each method produced most of, in code order: ``"clf 5, cnlf 1"`` ("no state" last)."""
+        from condtrack_cli.registry import method_codes
+
+        per_method = dict.fromkeys(method_codes() + ("",), 0)
+        for name in self.point_methods():
+            per_method[name] += 1
+        return ", ".join(f"{name or 'no state'} {count}" for name, count in per_method.items() if count)

@@ -207,3 +207,12 @@ def test_the_lazy_api_names_are_listed_by_dir_and_star_import():
     assert done.returncode == 0, done.stderr
     names, *bound = json.loads(done.stdout)
     assert {"track", "read_tracks", "Tracks", "CondtrackError"} <= set(names) and bound == [True, True, True]
+
+
+def test_the_repr_is_one_line_of_shapes_methods_input_and_seed(tmp_path, cnlf_tracks):
+    """repr(t) (a notebook cell ending with ``t``) was the dataclass's: every array, the whole config and the hashes,
+    15 kB on 449 lines for the occlusion sample; now one line."""
+    assert repr(cnlf_tracks) == ("Tracks(64 points x 30 frames, cnlf 64, input "
+                                 f"{str(SAMPLE)!r} 320x240 px, seed 3)")
+    cnlf_tracks.to_csv(tmp_path / "t.csv")
+    assert repr(ct.read_tracks(tmp_path / "t.csv")) == "Tracks(64 points x 30 frames, cnlf 64)"  # a CSV: no input

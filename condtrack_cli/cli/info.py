@@ -6,8 +6,6 @@ from pathlib import Path
 
 import click
 
-from condtrack_cli.registry import method_codes
-
 #: Root attributes that ``info`` prints in its own rows; any other attribute is printed after them.
 _SHOWN_ATTRIBUTES = ("schema_version", "condtrack_version", "input", "width", "height", "n_frames", "fps",
                      "coordinates", "config")
@@ -27,10 +25,7 @@ def info_command(tracks_path: str) -> None:
     tracks, meta = read_tracks(path)
     measurements, particles = stored_datasets(path)
     n_points, n_frames = tracks.xy.shape[:2]
-    per_method = dict.fromkeys(method_codes() + ("",), 0)
-    for name in tracks.point_methods():
-        per_method[name] += 1
-    split = ", ".join(f"{name or 'no state'} {count}" for name, count in per_method.items() if count)
+    split = tracks.method_split()
     started = tracks.has_state
     visible = (f"{tracks.visible[started].mean():.1%} of {int(started.sum())} rows with a state"
                if started.any() else "no row has a state")
