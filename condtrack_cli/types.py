@@ -9,10 +9,34 @@ Shapes use P = points, F = frames, N = particles.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from functools import cached_property
+from typing import Any
 
 import numpy as np
+
+
+def same_value(a: Any, b: Any) -> bool:
+    """``a`` and ``b`` hold the same values: arrays of one dtype and shape with equal elements (NaN equal to NaN),
+    mappings with the same keys and same values, else ``==``."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and a.dtype == b.dtype and a.shape == b.shape
+                and bool(np.array_equal(a, b, equal_nan=a.dtype.kind in "fc")))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(same_value(a[key], b[key]) for key in a)
+    return bool(a == b)
+
+
+class ArrayFields:
+    """``==`` for a dataclass of arrays: the same class and every field the same value (``same_value``), where the
+    dataclass's own ``==`` compared tuples of arrays and raised numpy's "truth value ... is ambiguous"."""
+
+    def __eq__(self, other: object) -> bool:
+        if other.__class__ is not self.__class__:
+            return NotImplemented
+        return all(same_value(getattr(self, f.name), getattr(other, f.name)) for f in fields(self))
+
+    __hash__ = None  # equal by value, and mutable arrays inside: not hashable
 
 
 @dataclass(frozen=True)
@@ -33,8 +57,8 @@ class SequenceInfo:
             return (x >= -0.5) & (x <= self.width - 0.5) & (y >= -0.5) & (y <= self.height - 0.5)
 
 
-@dataclass(frozen=True)
-class Queries:
+@dataclass(frozen=True, eq=False)
+class Queries(ArrayFields):
     """Points to track, each from its own frame.
 
     point_id: (P,) int64; frame: (P,) int64 query frame; xy: (P, 2) float64 pixels.
@@ -111,8 +135,8 @@ class FrameEstimate:
     method: np.ndarray
 
 
-@dataclass(frozen=True)
-class Tracks:
+@dataclass(frozen=True, eq=False)
+class Tracks(ArrayFields):
     """A whole tracking result, as written to CSV and HDF5.
 
     xy: (P, F, 2) float64, NaN where the point has no state.

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import copy
 import json
 import re
 import subprocess
@@ -216,3 +217,19 @@ def test_the_repr_is_one_line_of_shapes_methods_input_and_seed(tmp_path, cnlf_tr
                                  f"{str(SAMPLE)!r} 320x240 px, seed 3)")
     cnlf_tracks.to_csv(tmp_path / "t.csv")
     assert repr(ct.read_tracks(tmp_path / "t.csv")) == "Tracks(64 points x 30 frames, cnlf 64)"  # a CSV: no input
+
+
+def test_tracks_compare_by_value_with_equals(tmp_path, cnlf_tracks):
+    """back == t raised numpy's "The truth value of an array with more than one element is ambiguous" (the dataclass's
+    == compared tuples of arrays); now two Tracks are equal when their arrays are bit for bit (NaN equal to NaN), and
+    the sequence, config and run attributes equal."""
+    cnlf_tracks.to_hdf5(tmp_path / "t.h5")
+    back = ct.read_tracks(tmp_path / "t.h5")
+    assert back == cnlf_tracks and not back != cnlf_tracks and back == copy.deepcopy(back)
+    moved = copy.deepcopy(back)
+    moved.xy[3, 7, 0] = np.nextafter(moved.xy[3, 7, 0], np.inf)  # one bit of one position
+    assert moved != back and moved.result != back.result
+    cnlf_tracks.to_csv(tmp_path / "t.csv")
+    assert ct.read_tracks(tmp_path / "t.csv") != cnlf_tracks and back != "t.h5"
+    with pytest.raises(TypeError, match="unhashable"):
+        hash(back)
