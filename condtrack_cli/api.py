@@ -16,7 +16,7 @@ import contextlib
 import itertools
 import numbers
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -262,8 +262,9 @@ def track(
 def read_tracks(path: str | Path) -> Tracks:
     """Read a .csv, .h5 or .hdf5 track file back into :class:`Tracks`.
 
-    An HDF5 file gives back its sequence, config and run attributes; a CSV holds
-    none of them (``config`` is None, ``info`` has the frame count only) nor the measurements.
+    An HDF5 file gives back its sequence, config and run attributes, and its particles and segmentation when it
+    holds them (``t.result.extras``); a CSV holds none of them (``config`` is None, ``info`` has the frame count
+    only) nor the measurements.
 
     >>> import numpy as np
     >>> import condtrack_cli as ct
@@ -275,6 +276,7 @@ def read_tracks(path: str | Path) -> Tracks:
     """
     check_path("path", path)
     result, meta = io_read.read_tracks(path)
+    result = replace(result, extras=io_read.stored_extras(Path(path), result))
     info = types.SequenceInfo(
         input=str(meta.get("input", "")), width=int(meta.get("width", 0)), height=int(meta.get("height", 0)),
         n_frames=int(meta["n_frames"]), fps=float(meta.get("fps", 0.0)),

@@ -233,3 +233,16 @@ def test_tracks_compare_by_value_with_equals(tmp_path, cnlf_tracks):
     assert ct.read_tracks(tmp_path / "t.csv") != cnlf_tracks and back != "t.h5"
     with pytest.raises(TypeError, match="unhashable"):
         hash(back)
+
+
+def test_read_tracks_gives_back_the_particles_and_the_segmentation(tmp_path):
+    """ct.read_tracks dropped /particles/xy and /segmentation (output.store_particles, store_segmentation), so
+    read_tracks(a).to_hdf5(b) wrote a b without them; now they are in t.result.extras and b is a, byte for byte."""
+    config = {"output": {"store_particles": True, "store_segmentation": True}, "filter": {"cnlf": {"particles": 8}}}
+    t = ct.track(str(SAMPLES / "ring"), queries=np.array([[0, 40.0, 40.0], [2, 60.0, 50.0]]), method="auto",
+                 config=config)
+    t.to_hdf5(tmp_path / "a.h5")
+    back = ct.read_tracks(tmp_path / "a.h5")
+    assert back.result.extras.keys() == {"particles/xy", "segmentation"} and back == t
+    back.to_hdf5(tmp_path / "b.h5")
+    assert (tmp_path / "b.h5").read_bytes() == (tmp_path / "a.h5").read_bytes()

@@ -23,7 +23,7 @@ import numpy as np
 from condtrack_cli import READABLE_SCHEMA_VERSIONS
 from condtrack_cli.errors import CondtrackError, MissingInput, plain, warn
 from condtrack_cli.io.formats import is_hdf5, track_format
-from condtrack_cli.io.write import CSV_COLUMNS, CSV_COLUMNS_1
+from condtrack_cli.io.write import CSV_COLUMNS, CSV_COLUMNS_1, EXTRA_ATTRIBUTES
 from condtrack_cli.registry import BUILTIN_METHOD_CODES, method_codes
 from condtrack_cli.types import Queries, SequenceInfo, Tracks
 
@@ -254,6 +254,20 @@ def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, in
     return Tracks(tracks.queries, pad(tracks.xy, np.nan), pad(tracks.cov, np.nan), pad(tracks.dof, np.nan),
                   pad(tracks.visible, False),
                   pad(tracks.method, -1), pad(tracks.z, np.nan), pad(tracks.R, np.nan))
+
+
+def stored_extras(path: Path, tracks: Tracks) -> dict[str, np.ndarray]:
+    """The optional datasets (``Tracks.extras``: ``particles/xy``, ``segmentation``) that the HDF5 track file ``path``
+    of ``tracks`` holds, read whole; {} for a CSV. CondtrackError naming the file when one cannot be read."""
+    if not is_hdf5(path):
+        return {}
+    import h5py
+
+    with stored_particles(path, tracks), h5py.File(path, "r") as f:  # stored_particles checks the particles' shape
+        try:
+            return {name: f[name][()] for name in EXTRA_ATTRIBUTES if name in f}
+        except (OSError, RuntimeError, TypeError, ValueError) as error:
+            raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file ({error})") from None
 
 
 def stored_datasets(path: Path) -> tuple[str, str]:
