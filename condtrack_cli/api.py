@@ -24,7 +24,7 @@ import numpy as np
 import yaml
 
 from condtrack_cli import MAX_SEED, pipeline, registry, types
-from condtrack_cli.config import Config, load_config, resolve
+from condtrack_cli.config import Config, load_config, resolve, yaml_scalar
 from condtrack_cli.detect.trackability import POLICIES, query_scores, screen_queries, trackability_settings
 from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain, python_value
 from condtrack_cli.io import read as io_read
@@ -252,7 +252,7 @@ def track(
         raise InvalidArgumentType(f"forward_only: expected True or False, got {type(forward_only).__name__}")
     options = {name: override for name, override, given in (
         ("untrackable", f"detect.untrackable={untrackable}", untrackable is not None),
-        ("max_std", f"output.max_std={plain(max_std)}", max_std is not None),
+        ("max_std", f"output.max_std={yaml_scalar(python_value(max_std))}", max_std is not None),
         ("forward_only", "output.backward=false", forward_only)) if given}
     with Progress() if progress is True else contextlib.nullcontext(progress or None) as callback:
         tracks, _ = track_sequence(source, load_config(config, (), method, options), queries, seed, callback)

@@ -340,17 +340,18 @@ def _warn_overridden(sets: list[tuple[str, tuple[list[str], Any]]],
     for name, (path, value) in sets:
         for option, (option_path, option_value) in later:
             if option_path == path and option_value != value:
-                warn(f"{name} has no effect: {option} sets {'.'.join(path)} to {_yaml_scalar(option_value)}")
+                warn(f"{name} has no effect: {option} sets {'.'.join(path)} to {yaml_scalar(option_value)}")
 
 
-def _yaml_scalar(value: Any) -> str:
+def yaml_scalar(value: Any) -> str:
+    """``value`` written as YAML reads it back (``.inf`` for inf, ``'3'`` for the string "3"): an override's text."""
     return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix("...").strip()
 
 
 def _settings_lines(model: type[BaseModel], indent: str) -> list[str]:
     lines = []
     for key, field in model.model_fields.items():
-        value = _yaml_scalar(field.default)
+        value = yaml_scalar(field.default)
         lines.append(f"{indent}{key}: {value}  # {field.description}")
     return lines
 

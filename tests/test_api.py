@@ -246,3 +246,12 @@ def test_read_tracks_gives_back_the_particles_and_the_segmentation(tmp_path):
     assert back.result.extras.keys() == {"particles/xy", "segmentation"} and back == t
     back.to_hdf5(tmp_path / "b.h5")
     assert (tmp_path / "b.h5").read_bytes() == (tmp_path / "a.h5").read_bytes()
+
+
+@pytest.mark.parametrize("value, said", [(float("inf"), "finite number (got inf)"), (np.nan, "finite number (got nan)"),
+                                         ("3", "valid number (got '3')")])
+def test_max_std_is_refused_in_words_about_the_value_given(value, said):
+    """ct.track(max_std=float('inf')) was refused with "Input should be a valid number (got 'inf')": the float became
+    the text inf of an override, which YAML reads as a string; the value is now written as YAML reads it back."""
+    with pytest.raises(CondtrackError, match=re.escape(f"config key 'output.max_std': Input should be a {said}")):
+        ct.track(str(SAMPLE), method="clf", max_std=value)
