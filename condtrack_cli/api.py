@@ -282,5 +282,5 @@ def read_tracks(path: str | Path) -> Tracks:
         n_frames=int(meta["n_frames"]), fps=float(meta.get("fps", 0.0)),
     )
     config = resolve(yaml.safe_load(meta["config"])) if "config" in meta else None
-    attributes = {key: meta[key] for key in RUN_ATTRIBUTES if key in meta}
+    attributes = {key: python_value(meta[key]) for key in RUN_ATTRIBUTES if key in meta}  # h5py's np.int64: int
     return Tracks(result, info, config, attributes)

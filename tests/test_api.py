@@ -255,3 +255,14 @@ def test_max_std_is_refused_in_words_about_the_value_given(value, said):
     the text inf of an override, which YAML reads as a string; the value is now written as YAML reads it back."""
     with pytest.raises(CondtrackError, match=re.escape(f"config key 'output.max_std': Input should be a {said}")):
         ct.track(str(SAMPLE), method="clf", max_std=value)
+
+
+def test_read_back_attributes_are_the_python_values_a_run_has(tmp_path):
+    """ct.read_tracks gave the attributes as h5py reads them, np.int64 seed, np.bool_ smoothed, np.float64 max_std,
+    so json.dumps(back.attributes) raised "Object of type int64 is not JSON serializable" where json.dumps(t.attributes)
+    of the run worked; now they are int, bool and float, as the run's."""
+    t = ct.track(str(SAMPLES / "ring"), queries=np.array([[0, 40.0, 40.0]]), method="mdr", seed=5, max_std=2.5)
+    t.to_hdf5(tmp_path / "t.h5")
+    back = ct.read_tracks(tmp_path / "t.h5").attributes
+    assert {key: type(value) for key, value in back.items()} == {key: type(value) for key, value in t.attributes.items()}
+    assert json.loads(json.dumps(back)) == t.attributes and back["seed"] == 5 and back["max_std"] == 2.5
