@@ -163,7 +163,7 @@ def check_path(name: str, value: Any) -> None:
 
 
 def track_sequence(
-    input_path: str | Path, config: Config, queries: str | Path | np.ndarray | None = None, seed: int = 0,
+    input_path: str | Path, config: Config, queries: str | os.PathLike | np.ndarray | None = None, seed: int = 0,
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[Tracks, Any]:
     """Track ``input_path`` (a frame folder or a video) with a validated ``config``: the path of ``condtrack track``.
@@ -181,7 +181,7 @@ def track_sequence(
     source = registry.get("frames", frames_stage.name).factory(frames_stage.settings, str(input_path))
     info = source.info
     config.check_fits_frame(info.width, info.height, detecting=queries is None, where=info.input)
-    if queries is None or isinstance(queries, (str, Path)):
+    if queries is None or isinstance(queries, (str, os.PathLike)):
         queries = read_queries(queries, info) if queries is not None else None
     else:
         queries = queries_from_rows(queries, info)
@@ -208,8 +208,8 @@ def track_sequence(
 
 
 def track(
-    source: str | Path, queries: str | Path | np.ndarray | None = None, method: str | None = None,
-    config: str | Path | Mapping[str, Any] | None = None, seed: int = 0,
+    source: str | Path, queries: str | os.PathLike | np.ndarray | None = None, method: str | None = None,
+    config: str | os.PathLike | Mapping[str, Any] | None = None, seed: int = 0,
     progress: bool | Callable[[int, int], None] = False, untrackable: str | None = None,
     max_std: float | None = None, forward_only: bool = False,
 ) -> Tracks:

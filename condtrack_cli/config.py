@@ -15,6 +15,7 @@ two equal.
 from __future__ import annotations
 
 import copy
+import os
 import re
 from collections.abc import Hashable
 from dataclasses import dataclass
@@ -299,7 +300,7 @@ def _unused_because(config: Config, path: list[str]) -> str | None:
 
 
 def load_config(
-    path: str | Path | Mapping[str, Any] | None = None, overrides: list[str] = (), method: str | None = None,
+    path: str | os.PathLike | Mapping[str, Any] | None = None, overrides: list[str] = (), method: str | None = None,
     options: Mapping[str, str] | None = None,
 ) -> Config:
     """The validated config: defaults, then the file (or a nested mapping), then ``--set`` overrides, then the
@@ -310,9 +311,9 @@ def load_config(
     does not read (a filter section it does not use, ``output.max_std`` without
     a covariance) gets a warning naming the ``--set`` or the option.
     """
-    if path is not None and not isinstance(path, (str, Path, Mapping)):
+    if path is not None and not isinstance(path, (str, os.PathLike, Mapping)):
         raise CondtrackError(f"config: expected a YAML path or a nested mapping, got {type(path).__name__}")
-    raw = read_yaml(path) if isinstance(path, (str, Path)) else python_value(dict(path or {}))  # np.int64(50) is 50
+    raw = read_yaml(path) if isinstance(path, (str, os.PathLike)) else python_value(dict(path or {}))  # np.int64(50) is 50
     raw = copy.deepcopy(raw)
     given = [(f"--set {text}", text) for text in overrides] + list((options or {}).items())
     parsed = [(name, parse_override(text)) for name, text in given]

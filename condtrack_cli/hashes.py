@@ -32,11 +32,11 @@ def config_hash(config: Config) -> str:
     return hashlib.sha256(config.to_yaml().encode("utf-8")).hexdigest()
 
 
-def queries_hash(queries: str | Path | np.ndarray | None) -> str:
+def queries_hash(queries: str | os.PathLike | np.ndarray | None) -> str:
     """sha256 (hex) of a queries file's bytes or of an (N, 3) array's float64 bytes; "" for None."""
     if queries is None:
         return ""
-    if not isinstance(queries, (str, Path)):
+    if not isinstance(queries, (str, os.PathLike)):
         return hashlib.sha256(np.ascontiguousarray(queries, dtype=np.float64).tobytes()).hexdigest()
     try:
         return hashlib.sha256(Path(queries).read_bytes()).hexdigest()

@@ -7,6 +7,7 @@ import json
 import re
 import subprocess
 import sys
+from pathlib import PurePosixPath
 
 import h5py
 import numpy as np
@@ -266,3 +267,13 @@ def test_read_back_attributes_are_the_python_values_a_run_has(tmp_path):
     back = ct.read_tracks(tmp_path / "t.h5").attributes
     assert {key: type(value) for key, value in back.items()} == {key: type(value) for key, value in t.attributes.items()}
     assert json.loads(json.dumps(back)) == t.attributes and back["seed"] == 5 and back["max_std"] == 2.5
+
+
+def test_queries_and_config_may_be_any_path_like():
+    """queries=PurePosixPath(...) (or any os.PathLike but Path) was refused with "queries: expected an (N, 3) array of
+    numbers frame, x, y; got dtype object", config=PurePosixPath(...) with "config: expected a YAML path or a nested
+    mapping, got PurePosixPath", though source takes any path; now both are read as the file they name."""
+    queries, config = SAMPLE / "queries.csv", REPO / "configs" / "default.yaml"
+    expected = ct.track(str(SAMPLE), queries=str(queries), method="mdr", config=str(config))
+    given = ct.track(str(SAMPLE), queries=PurePosixPath(queries), method="mdr", config=PurePosixPath(config))
+    assert given == expected
