@@ -287,6 +287,17 @@ def test_synth_help_lists_every_scene():
     assert f"Scene to write into OUT: {', '.join(SCENES)}." in text
 
 
+def test_synth_help_gives_the_sizes_it_takes():
+    """--size's help said "WIDTHxHEIGHT in pixels." while synth refuses a side under 64 px or over 4096 ("size 48x48 is
+    too small (at least 64 px each way)"); it now gives the range, written out and checked here against the scenes'."""
+    from condtrack_cli.frames.synthetic.scenes import MAX_SIDE
+
+    text = " ".join(CliRunner().invoke(cli, ["synth", "--help"]).output.split())
+    assert f"WIDTHxHEIGHT in pixels, {4 * synthetic.BORDER_MARGIN} to {MAX_SIDE} each way." in text
+    with pytest.raises(ValueError, match=f"at least {4 * synthetic.BORDER_MARGIN} px each way"):
+        synthetic.make_scene("ring", seed=0, size=(4 * synthetic.BORDER_MARGIN - 1, 64))
+
+
 @pytest.mark.parametrize("seed", [0, 2])
 def test_nonrigid_truth_is_exact(seed):
     """The ``nonrigid`` scene (issue 45), small and short: the renderer's own backward map carries every true
