@@ -610,9 +610,9 @@ class ReferenceMatcher:
         s = self.settings
         self.step[index] = np.where((found_before & measured.valid)[:, None], x_post - x_prev, np.nan)
         self._remember(index[measured.valid], frame, x_post[measured.valid])
-        if s.lk_fallback:
-            vouched = index[measured.valid & self.vouched[index]]
-            self.vouched_seen[vouched] = x_post[measured.valid & self.vouched[index]]
+        if s.lk_fallback:  # found with a vouched reference: where the re-acquisition's first patch is looked for
+            found_vouched = measured.valid & self.vouched[index]
+            self.vouched_seen[index[found_vouched]] = x_post[found_vouched]
         retaken = np.zeros(len(index), bool)
         self.offset_floor[index] = 0.0
         if not s.reference_update:
