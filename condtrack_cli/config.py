@@ -100,10 +100,12 @@ class Config:
         if min(width, height) < smallest:  # no setting makes it fit: the frame is the problem, not a key
             raise CondtrackError(f"{where}: the {width}x{height} frame is too small for tracking "
                                  f"(at least {smallest}x{smallest} px)")
-        for key, side, _ in windows:
-            if side > min(width, height):
-                raise CondtrackError(f"config key '{key}': a window of {side} px does not fit in the "
-                                     f"{width}x{height} frame (at most {min(width, height)})")
+        oversized = [(key, side) for key, side, _ in windows if side > min(width, height)]
+        if oversized:  # every one named at once: fixing them one run at a time is what a user should not have to do
+            (key, side), others = oversized[0], oversized[1:]
+            nor = f"; nor do {', '.join(f'{other} ({size} px)' for other, size in others)}" if others else ""
+            raise CondtrackError(f"config key '{key}': a window of {side} px does not fit in the "
+                                 f"{width}x{height} frame (at most {min(width, height)}){nor}")
 
 
 def _minimum(model: type[BaseModel], field: str) -> int:

@@ -214,6 +214,9 @@ def test_a_frame_smaller_than_every_window_is_refused_as_too_small(tmp_path, siz
     (tmp_path / "five").mkdir()
     result = run_cli("track", str(_frames_folder(tmp_path / "five", ((5, 5),) * 3)), "-m", method)
     _one_error_line(result, 1, "config key 'detect.block': a window of 7 px does not fit in the 5x5 frame (at most 5)")
+    # every window that does not fit is named in that one line, not one per run
+    assert "; nor do motion.local_window (9 px), motion.misfit_window (15 px), measure.template (11 px)" in result.stderr
+    assert ("filter.stk.win_size (21 px)" in result.stderr) == (method == "stk")
 
 
 def test_a_window_of_a_filter_the_method_does_not_use_does_not_refuse_the_frame(tmp_path):
