@@ -187,6 +187,19 @@ def test_a_broken_manifest_line_is_named(tmp_path, monkeypatch, capsys, line, pr
         1, "", f"Error: {tmp_path / 'manifest.jsonl'}, line 2: {problem}\n")
 
 
+def test_blank_lines_in_the_manifest_are_skipped(tmp_path):
+    """Two manifests joined with a blank line between (or a hand edit) were refused: 'line 2: not a JSON record'."""
+    record(tmp_path, "a", "ok", 1.0)
+    with open(tmp_path / "manifest.jsonl", "a") as manifest:
+        manifest.write("\n  \n")
+    record(tmp_path, "b", "ok", 1.0)
+    for name in ("a", "b"):
+        (tmp_path / f"{name}_frames.h5").write_bytes(b"")
+    result = status(str(tmp_path))
+    assert result.exit_code == 0, result.stderr
+    assert "2 inputs: 2 ok" in result.stdout
+
+
 def test_a_last_line_cut_short_by_a_kill_is_ignored(tmp_path):
     record(tmp_path, "a", "ok", 1.0)
     (tmp_path / "a_frames.h5").write_bytes(b"")

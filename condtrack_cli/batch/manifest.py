@@ -51,7 +51,7 @@ class ClipRecord:
 def read_manifest(out_dir: Path, fields: dict[str, str] | None = None) -> list[dict]:
     """The manifest's records, oldest first; [] without a manifest.
 
-    A last line cut short by a kill (no newline) is ignored. Other broken lines
+    Blank lines are skipped, and a last line cut short by a kill (no newline) is ignored. Other broken lines
     are skipped, unless ``fields`` (name -> a ``JSON_TYPES`` name) is given: then a line that
     is not a JSON object with those fields, or whose status is not one of
     ``RECORD_STATUSES``, is a CondtrackError naming the file and the line.
@@ -68,6 +68,8 @@ def read_manifest(out_dir: Path, fields: dict[str, str] | None = None) -> list[d
     lines = text.splitlines()
     records = []
     for number, line in enumerate(lines, 1):
+        if not line.strip():  # a blank line (manifests joined or hand-edited) holds no record: not an error
+            continue
         try:
             record = json.loads(line)
         except json.JSONDecodeError:
