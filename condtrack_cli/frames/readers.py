@@ -119,7 +119,7 @@ class FolderSource:
         path = self.paths[index]
         if path.suffix.lower() in JPEG_EXTENSIONS and cut_short(path):  # before libjpeg decodes it anyway
             raise CondtrackError(f"frame {index} ({path}): the JPEG file is cut short (no end-of-image marker in its "
-                                 "last 64 KiB); its decoder would fill the missing part with grey")
+                                 f"last {JPEG_TAIL // 1024} KiB); its decoder would fill the missing part with grey")
         with opencv_log(cv2.utils.logging.LOG_LEVEL_SILENT):  # a damaged file's decoder lines: the error names it
             raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if raw is None:
