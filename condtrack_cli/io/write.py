@@ -76,10 +76,11 @@ def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, A
     # (same datasets, different bytes: a Dask run did not match the local one).
     with h5py.File(path, "w", track_order=False, rdcc_nbytes=0) as f:
         attrs = {
-            "schema_version": SCHEMA_VERSION, "condtrack_version": __version__,
-            "input": info.input, "width": info.width, "height": info.height,
+            "schema_version": SCHEMA_VERSION, "condtrack_version": __version__, "input": info.input,
             "n_frames": info.n_frames, "fps": info.fps, "coordinates": COORDINATES,
         }
+        if info.width and info.height:  # unknown (0) for tracks read back from a CSV: not recorded as 0 x 0 px
+            attrs.update(width=info.width, height=info.height)
         attrs.update(meta)
         for key, value in attrs.items():
             f.attrs[key] = value
