@@ -43,6 +43,7 @@ from condtrack_cli import registry
 from condtrack_cli.config import Config
 from condtrack_cli.detect.trackability import Aperture, QueryScorer, trackability_settings
 from condtrack_cli.errors import CondtrackError
+from condtrack_cli.filters.gauss2 import symmetrize
 from condtrack_cli.filters.interface import Tracker
 from condtrack_cli.frame_reports import FrameReports, FrameStore, park, temporary_folder
 from condtrack_cli.frames.prefetch import Prefetched
@@ -161,7 +162,8 @@ def run_pass(
         with Prefetched(frames) as ahead:  # frame k+1 is decoded while frame k is tracked
             tracker, scores = _track_frames(ahead, info, config, queries, seed, on_frame, history)
         tracks = dataclasses.replace(tracker.finish(history), trackability=scores)
-    return tracker.smooth(tracks) if config.smooth else tracks
+    tracks = tracker.smooth(tracks) if config.smooth else tracks
+    return dataclasses.replace(tracks, cov=symmetrize(np.require(tracks.cov, np.float64, "W")))  # copied if read-only
 
 
 def frame_motions(images: Iterable[np.ndarray], prev: Frame, motion: MotionStages, local: bool,

@@ -27,6 +27,14 @@ def inverse2(m: np.ndarray) -> np.ndarray:
     return out
 
 
+def symmetrize(m: np.ndarray) -> np.ndarray:
+    """Set both off-diagonal entries of (..., 2, 2) float matrices ``m`` to their mean, in place, and return ``m``
+    (a reported covariance's xy and yx, which sums of products can leave a bit apart; halved before the sum, so
+    that no finite entry overflows, and equal entries stay as they are)."""
+    m[..., 0, 1] = m[..., 1, 0] = 0.5 * m[..., 0, 1] + 0.5 * m[..., 1, 0]
+    return m
+
+
 def matvec2(m: np.ndarray, v: np.ndarray) -> np.ndarray:
     """(..., 2) products m v of (..., 2, 2) matrices and (..., 2) vectors (broadcast)."""
     v0, v1 = v[..., 0], v[..., 1]
