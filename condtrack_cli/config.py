@@ -85,14 +85,16 @@ class Config:
         return yaml.safe_dump(self.to_dict(), sort_keys=False)
 
     def check_fits_frame(self, width: int, height: int, detecting: bool = True, where: str = "input") -> None:
-        """Refuse a frame smaller than every setting allows, or a window (``frame_windows`` of any stage, and of the
-        filters the method uses) larger than a ``width`` x ``height`` frame; ``where`` names the input.
+        """Refuse a frame smaller than every setting allows, or a window (``frame_windows`` of the stages and of the
+        filters the method uses: its settings' ``stage_kinds``) larger than a ``width`` x ``height`` frame; ``where``
+        names the input.
 
         ``detecting``: points are detected (no queries file), so the detector's
         windows count too; with queries they are only read on the query points,
         where a window larger than the frame is clipped.
         """
-        sections = {kind: stage.settings for kind, stage in self.stages.items() if detecting or kind != "detect"}
+        read = {"frames", *(["detect"] if detecting else []), *registry.get("filter", self.method).settings.stage_kinds}
+        sections = {kind: stage.settings for kind, stage in self.stages.items() if kind in read}
         sections.update({f"filter.{name}": self.filters[name] for name in filters_used_by(self.method)})
         windows = [(f"{prefix}.{field}", getattr(settings, field), _minimum(type(settings), field))
                    for prefix, settings in sections.items() for field in settings.frame_windows]

@@ -37,7 +37,9 @@ class StageSettings(BaseModel):
     only) names the other filters whose ``filter.<name>`` settings it reads, as
     the router ``auto`` reads ``clf`` and ``cnlf``; ``covariance`` (a filter's
     settings only) is False for a filter that writes no covariance (NaN), as
-    STK: ``output.max_std`` then changes nothing. ``unbounded_floats`` names the float fields that only compare
+    STK: ``output.max_std`` then changes nothing. ``stage_kinds`` (a filter's settings only) names the stage kinds
+    whose settings it reads (STK measures by its own Lucas-Kanade: neither ``motion`` nor ``measure``), so that only
+    their windows must fit the frame. ``unbounded_floats`` names the float fields that only compare
     (a threshold such as ``output.max_std``, where 1e16 means "never"), exempt from ``MAX_FLOAT_SETTING``;
     ``odd_fields`` the integer fields that must be odd (patch sides with a centre pixel; null passes).
     """
@@ -46,6 +48,7 @@ class StageSettings(BaseModel):
     frame_windows: ClassVar[tuple[str, ...]] = ()
     filter_sections: ClassVar[tuple[str, ...]] = ()
     covariance: ClassVar[bool] = True
+    stage_kinds: ClassVar[tuple[str, ...]] = ("motion", "measure")
     unbounded_floats: ClassVar[tuple[str, ...]] = ()
     odd_fields: ClassVar[tuple[str, ...]] = ()
 

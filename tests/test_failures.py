@@ -214,9 +214,10 @@ def test_a_frame_smaller_than_every_window_is_refused_as_too_small(tmp_path, siz
     (tmp_path / "five").mkdir()
     result = run_cli("track", str(_frames_folder(tmp_path / "five", ((5, 5),) * 3)), "-m", method)
     _one_error_line(result, 1, "config key 'detect.block': a window of 7 px does not fit in the 5x5 frame (at most 5)")
-    # every window that does not fit is named in that one line, not one per run
-    assert "; nor do motion.local_window (9 px), motion.misfit_window (15 px), measure.template (11 px)" in result.stderr
-    assert ("filter.stk.win_size (21 px)" in result.stderr) == (method == "stk")
+    # every window that does not fit is named in that one line, not one per run; STK reads no motion or measure stage
+    stages = "motion.local_window (9 px), motion.misfit_window (15 px), measure.template (11 px)"
+    assert ("; nor do " + (stages if method == "clf" else "filter.stk.win_size (21 px)")) in result.stderr
+    assert (stages in result.stderr, "filter.stk.win_size" in result.stderr) == (method == "clf", method == "stk")
 
 
 def test_a_window_of_a_filter_the_method_does_not_use_does_not_refuse_the_frame(tmp_path):
@@ -231,6 +232,27 @@ def test_a_window_of_a_filter_the_method_does_not_use_does_not_refuse_the_frame(
     assert out.exists()
     result = run_cli("track", str(folder), "-p", str(queries), "-m", "stk", "-o", str(tmp_path / "stk.csv"))
     _one_error_line(result, 1, "config key 'filter.stk.win_size': a window of 21 px does not fit in the 18x18 frame")
+
+
+def test_stk_tracks_a_frame_too_small_for_the_motion_and_measure_windows_it_does_not_use(tmp_path):
+    """An 8 x 8 frame with ``filter.stk.win_size=5``: ``-m stk`` was refused for motion.local_window (9 px) and
+    measure.template (11 px), windows of stages STK never runs; it now tracks (STK's settings' ``stage_kinds``)."""
+    rng = np.random.default_rng(0)
+    scene = cv2.GaussianBlur((rng.random((16, 16)) * 255).astype(np.uint8), (3, 3), 0)
+    folder = tmp_path / "tiny"
+    folder.mkdir()
+    for k in range(3):
+        cv2.imwrite(str(folder / f"{k:03d}.png"), scene[k : k + 8, k : k + 8])  # the view moves 1 px a frame
+    queries = tmp_path / "q.csv"
+    queries.write_text("frame,x,y\n0,4,4\n")
+    out = tmp_path / "out.csv"
+    result = run_cli("track", str(folder), "-p", str(queries), "-m", "stk", "--set", "filter.stk.win_size=5",
+                     "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    rows = np.loadtxt(out, delimiter=",", skiprows=1, usecols=(2, 3))
+    np.testing.assert_allclose(rows[-1], [2.0, 2.0], atol=0.5)  # the scene point at (4, 4) of frame 0, 2 px up-left
+    result = run_cli("track", str(folder), "-p", str(queries), "-m", "clf", "-o", str(tmp_path / "clf.csv"))
+    _one_error_line(result, 1, "config key 'motion.local_window': a window of 9 px does not fit in the 8x8 frame")
 
 
 @pytest.mark.parametrize("option, value", [("--atol-px", "nan"), ("--atol-px", "inf"), ("--rtol-cov", "inf"),

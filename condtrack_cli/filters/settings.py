@@ -82,6 +82,7 @@ class MeasuredFilterSettings(InitialStateSettings):
 class STKSettings(StageSettings):
     frame_windows = ("win_size",)
     covariance = False
+    stage_kinds = ()
     win_size: int = Field(21, ge=3, description="side of the Lucas-Kanade window (px)")
     levels: int = Field(4, ge=1, le=8, description="pyramid levels (OpenCV maxLevel = levels - 1; 4: OpenCV maxLevel 3)")
     max_iterations: int = Field(30, ge=1, le=OPENCV_INT_MAX, description="iterations per level")
