@@ -295,8 +295,11 @@ def filters_used_by(method: str) -> tuple[str, ...]:
 def _unused_because(config: Config, path: list[str]) -> str | None:
     """Why setting the config key ``path`` changes nothing under ``config``'s method, or None when it may."""
     method = config.method
-    if path == ["output", "max_std"] and not registry.get("filter", method).settings.covariance:
+    settings = registry.get("filter", method).settings
+    if path == ["output", "max_std"] and not settings.covariance:
         return f"method '{method}' writes no covariance"
+    if path[0] in ("motion", "measure") and path[0] not in settings.stage_kinds:
+        return f"method '{method}' runs no {path[0]} stage"
     if len(path) < 3 or path[0] != "filter" or path[1] not in valid_methods() or path[1] in filters_used_by(method):
         return None
     users = [name for name in valid_methods() if path[1] in filters_used_by(name)]

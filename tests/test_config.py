@@ -24,10 +24,10 @@ def test_every_key_of_the_default_file_has_a_comment():
 
 
 def test_override_and_method():
-    config = load_config(None, ["motion.patch_size=6", "filter.stk.win_size=15"], method="stk")
+    config = load_config(None, ["motion.patch_size=6"], method="clf")
     assert config.stage("motion").settings.patch_size == 6
-    assert config.filters["stk"].win_size == 15
     assert config.to_dict()["motion"]["patch_size"] == 6
+    assert load_config(None, ["filter.stk.win_size=15"], method="stk").filters["stk"].win_size == 15
 
 
 @pytest.mark.parametrize(

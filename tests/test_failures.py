@@ -303,6 +303,14 @@ def test_a_set_on_a_filter_the_method_does_not_use_is_warned(tmp_path):
     ]
     result = run_cli("track", str(SAMPLE), "-m", "stk", "--set", "filter.stk.win_size=31", "-o", str(out))
     assert result.returncode == 0 and "has no effect" not in result.stderr
+    # STK runs neither the motion nor the measurement stage: their keys change nothing either
+    result = run_cli("track", str(SAMPLE), "-m", "stk", "--set", "measure.template=7", "--set", "motion.name=robust",
+                     "--set", "detect.block=5", "-o", str(out))
+    assert result.returncode == 0, result.stderr
+    assert [line for line in result.stderr.splitlines() if "has no effect" in line] == [
+        "warning: --set measure.template=7 has no effect: method 'stk' runs no measure stage",
+        "warning: --set motion.name=robust has no effect: method 'stk' runs no motion stage",
+    ]
 
 
 def test_messages_show_values_plainly_and_name_an_input_once(tmp_path):
