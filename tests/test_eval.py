@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import pickle
+import warnings
 
 import cv2
 import numpy as np
@@ -289,6 +290,31 @@ def test_load_gt_tapvid_refuses_a_visible_point_without_finite_coordinates(tmp_p
     video = tapvid_video()
     video["points"][0, 1] = value  # point 0 is occluded on frame 1
     assert not load_gt_tapvid(dump(tmp_path / "gt.pkl", video)).visible[0, 1]
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("points", "abc", "'points' holds <U3 values, not numbers"),
+    ("points", None, "'points' holds object values, not numbers"),
+    ("points", {"x": 1}, "'points' holds object values, not numbers"),
+    ("points", np.ones((2, 3, 2), complex), "'points' holds complex128 values, not numbers"),
+    ("points", np.full((2, 3, 2), 1e308), r"point 0, frame 0: a visible point needs finite x and y \(got 1e\+308"),
+    ("occluded", [[0, 1], [0]], r"'occluded' is not an array \(lists of unequal lengths\?\)"),
+    ("occluded", np.full((2, 3), "no"), "'occluded' holds <U2 values, not numbers"),
+    ("occluded", np.full((2, 3), 2), r"'occluded' holds values other than true/false \(0 or 1\)"),
+])
+def test_load_gt_tapvid_refuses_entries_that_are_not_numbers(tmp_path, key, value, message):
+    """Text, objects or ragged lists in 'points' or 'occluded' ended in a numpy traceback ('could not convert string
+    to float'); occluded strings were read as all occluded; a normalised 1e308 overflowed with a RuntimeWarning. Each
+    is now one error naming the entry; 0/1 numbers still stand for false/true."""
+    video = tapvid_video()
+    video[key] = value
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(CondtrackError, match="gt.pkl: " + message):
+            load_gt_tapvid(dump(tmp_path / "gt.pkl", video))
+    video = tapvid_video()
+    video["occluded"] = video["occluded"].astype(np.uint8)
+    np.testing.assert_array_equal(load_gt_tapvid(dump(tmp_path / "gt.pkl", video)).visible, ~tapvid_video()["occluded"])
 
 
 class _Touches:

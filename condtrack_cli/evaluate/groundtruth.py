@@ -235,12 +235,24 @@ class _ArraysOnly(pickle.Unpickler):
             return getattr(importlib.import_module(f"numpy.core.{key}"), name)
 
 
+def _numbers(video: dict, key: str, path: Path, kinds: str) -> np.ndarray:
+    """``video[key]`` as an array of one of the NumPy ``kinds`` (``'iuf'``: integers or floats, ``'b'`` booleans);
+    CondtrackError naming the entry for strings, objects, complex numbers or ragged lists."""
+    try:
+        array = np.asarray(video[key])
+    except ValueError:  # ragged nested lists
+        raise CondtrackError(f"{path}: '{key}' is not an array (lists of unequal lengths?)") from None
+    if array.dtype.kind not in kinds:
+        raise CondtrackError(f"{path}: '{key}' holds {array.dtype} values, not numbers")
+    return array
+
+
 def load_gt_tapvid(path: str | Path) -> GroundTruth:
     """Read TAP-Vid ground truth from a pickle (one video) and convert it to our pixel convention.
 
     The pickle holds a dict with ``video`` (F, H, W, 3) uint8 (or a list of
     JPEG/PNG-encoded frames, as in TAP-Vid-Kinetics), ``points`` (P, F, 2)
-    normalised (x, y) and ``occluded`` (P, F) bool; or a dict (or list) of such
+    normalised (x, y) numbers and ``occluded`` (P, F) bool (or 0/1 numbers); or a dict (or list) of such
     videos, of which there must be exactly one. Every frame of every point is
     known; ``point_id`` is the row index 0..P-1; a visible point's x and y must be
     finite (as a CSV row's). The pickle is read by
@@ -258,18 +270,22 @@ def load_gt_tapvid(path: str | Path) -> GroundTruth:
         if key not in video:
             raise CondtrackError(f"{path}: the TAP-Vid video has no '{key}' entry")
     width, height = _frame_size(video["video"], path)
-    points = np.asarray(video["points"], np.float64)
-    occluded = np.asarray(video["occluded"]).astype(bool)
+    points = _numbers(video, "points", path, "iuf")
+    occluded = _numbers(video, "occluded", path, "biuf")
+    if not np.isin(occluded, (0, 1)).all():
+        raise CondtrackError(f"{path}: 'occluded' holds values other than true/false (0 or 1)")
+    occluded = occluded.astype(bool)
     if points.ndim != 3 or points.shape[2] != 2 or occluded.shape != points.shape[:2]:
         raise CondtrackError(
             f"{path}: 'points' {points.shape} and 'occluded' {occluded.shape} are not (P, F, 2) and (P, F)"
         )
-    bad = ~occluded & ~np.isfinite(points).all(axis=2)
+    with np.errstate(over="ignore"):  # a normalised 1e308 is no pixel either: refused below, with no warning
+        gt_xy = tapvid_to_pixels(points, width, height)
+    bad = ~occluded & ~np.isfinite(gt_xy).all(axis=2)
     if bad.any():
         point, frame = np.argwhere(bad)[0]
         raise CondtrackError(f"{path}: point {point}, frame {frame}: a visible point needs finite x and y "
                              f"(got {points[point, frame, 0]}, {points[point, frame, 1]})")
-    gt_xy = tapvid_to_pixels(points, width, height)
     return GroundTruth(np.arange(len(points), dtype=np.int64), gt_xy, ~occluded, np.ones(occluded.shape, bool))
 
 
