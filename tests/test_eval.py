@@ -551,6 +551,21 @@ def test_cli_all_visible_gt_prints_null(tmp_path):
     assert "null" in result.stdout
 
 
+def test_cli_json_nees_beyond_the_float_range_is_the_string_inf(tmp_path):
+    """A truth 1e200 px from its prediction (a hand-edited file) printed 'warning: RuntimeWarning: overflow encountered
+    in multiply' and '"nees": Infinity', which is not JSON; d^T C^-1 d is now inf without a warning (the truth outside
+    every ellipse) and --json writes it as compare --json does, the string "inf"."""
+    pred = write_pred_csv(tmp_path / "pred.csv", [3], np.zeros((1, 3, 2)), np.ones((1, 3), bool),
+                          np.broadcast_to(np.eye(2), (1, 3, 2, 2)))
+    gt = write_gt_csv(tmp_path / "gt.csv", ["3,0,0,0,1", "3,1,0,1e200,1", "3,2,0,0,0"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--json"])
+    assert result.exit_code == 0 and result.stderr == "", result.output
+    values = json.loads(result.stdout, parse_constant=lambda name: pytest.fail(f"not JSON: {name}"))
+    assert values["nees"] == "inf" and values["cov99"] == 0.0 and values["pts_within_16"] == 0.0
+
+
 def test_cli_tapvid(tmp_path):
     video = tapvid_video()
     gt_path = dump(tmp_path / "gt.pkl", {"bear": video})

@@ -7,12 +7,10 @@ read (missing, damaged, not a condtrack file, unknown schema) or on bad usage.
 from __future__ import annotations
 
 import json
-import math
-from typing import Any
 
 import click
 
-from condtrack_cli.cli.options import FiniteFloatRange
+from condtrack_cli.cli.options import FiniteFloatRange, json_value
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io.formats import is_hdf5
 from condtrack_cli.io.compare import (
@@ -32,17 +30,6 @@ def _value(value: float | int | str | list | None) -> str:
     if isinstance(value, float):
         return f"{value:.10g}"
     return str(value)
-
-
-def _json_value(value: Any) -> Any:
-    """A value for strict JSON, lists and dicts throughout: a non-finite float as the string "inf", "-inf" or "nan"."""
-    if isinstance(value, dict):
-        return {key: _json_value(v) for key, v in value.items()}
-    if isinstance(value, list):
-        return [_json_value(v) for v in value]
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
-    return value
 
 
 def tolerance_line(tolerances: Tolerances) -> str:
@@ -93,7 +80,7 @@ def report_lines(result: Comparison, path_a: str, path_b: str) -> list[str]:
 def report_json(result: Comparison, path_a: str, path_b: str) -> dict:
     """The ``--json`` report as a JSON-ready dict (non-finite values as strings: --strict's ``max_px`` is "inf")."""
     t = result.tolerances
-    return _json_value({
+    return json_value({
         "agree": result.agree, "a": path_a, "b": path_b,
         "n_points": result.n_points, "n_frames": result.n_frames, "fields": list(result.fields),
         "tolerances": {"atol_px": t.atol_px, "rtol_cov": t.rtol_cov, "max_share": t.max_share, "max_px": t.max_px,

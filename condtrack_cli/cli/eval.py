@@ -6,7 +6,7 @@ import json
 
 import click
 
-from condtrack_cli.cli.options import checked, png_suffix
+from condtrack_cli.cli.options import checked, json_value, png_suffix
 from condtrack_cli.evaluate.groundtruth import load_gt_csv, load_gt_tapvid
 from condtrack_cli.evaluate.metrics import METRIC_KEYS, QUERY_MODES
 from condtrack_cli.evaluate.score import score_tracks
@@ -49,7 +49,7 @@ def _print_table(result: dict, notes: list[str], title: str) -> None:
 @click.argument("gt", type=click.Path(dir_okay=False))
 @click.option("--query-mode", type=click.Choice(QUERY_MODES), default="first", show_default=True,
               help="first: score the frames after each point's query frame; strided: every frame but it.")
-@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table.")
+@click.option("--json", "as_json", is_flag=True, help="Print one JSON object instead of a table (strict JSON: an infinite value is the string \"inf\").")
 @click.option("--gt-format", type=click.Choice(tuple(_GT_READERS)), default="csv", show_default=True,
               help="csv: point_id,frame,x,y,visible; tapvid: a TAP-Vid pickle holding one video (arrays, dicts, "
                    "lists and numbers only: a pickle naming other code is refused).")
@@ -70,7 +70,8 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
                     when more than half of them have none
       covP          fraction of GT-visible scored positions inside the
                     predicted ellipse of level P% (P = 50, 90, 95, 99; ideal P/100)
-      nees          mean d^T C^-1 d over those with a finite covariance (ideal 2)
+      nees          mean d^T C^-1 d over those with a finite covariance (ideal 2;
+                    inf when one is beyond the float range)
       cov_finite    fraction of GT-visible scored positions with a finite covariance
       cov50_rescaled  cov50 after scaling every covariance by the one factor
                     that puts cov95 at 0.95 (0.5: only the scale is off; above:
@@ -107,7 +108,7 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
             "the GT frames beyond count as not predicted"
         )
     if as_json:
-        click.echo(json.dumps(result))
+        click.echo(json.dumps(json_value(result), allow_nan=False))
         for note in notes:
             click.echo(note, err=True)
     else:

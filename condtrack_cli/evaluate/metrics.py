@@ -141,7 +141,9 @@ def normalised_error(error: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np
     # Sanitised operands so that no NaN/inf arithmetic (and no warning) happens off the mask.
     dx, dy = (np.where(bounded, error[..., k], 0.0) for k in (0, 1))
     det_safe = np.where(bounded, det, 1.0)
-    m2 = (syy * dx * dx - (sxy + syx) * dx * dy + sxx * dy * dy) / det_safe
+    with np.errstate(over="ignore", invalid="ignore"):  # an error beyond the float range (1e200 px off) is inf away
+        m2 = (syy * dx * dx - (sxy + syx) * dx * dy + sxx * dy * dy) / det_safe
+    m2 = np.where(np.isnan(m2), np.inf, m2)  # inf - inf of two such terms: as far
     return unbounded, bounded, m2
 
 
