@@ -163,6 +163,26 @@ def test_interrupted_inputs_are_counted_and_redone_without_an_output(tmp_path):
     assert report["redo"] == [result.stdout.splitlines()[-1].strip()] and report["notes"] == []
 
 
+def test_a_batch_with_queries_whose_inputs_all_failed_says_to_add_p(tmp_path, monkeypatch, capsys):
+    """A failed (or interrupted) input's record had an empty queries_hash, so when no input of a batch run with -p
+    ended ok the redo command lacked -p and no note said to add it: the redo would detect points instead. Every
+    record now holds the planned queries file's hash."""
+    from condtrack_cli.batch.job import interrupted_record
+    from condtrack_cli.batch.plan import plan_batch
+    from condtrack_cli.hashes import queries_hash
+
+    queries = tmp_path / "q.csv"
+    queries.write_text("frame,x,y\n0,10,10\n")
+    monkeypatch.chdir(tmp_path)
+    code, _, _ = _main(["track", "gone1", "gone2", "-p", "q.csv", "-m", "stk", "--out-dir", "o", "-q"], monkeypatch,
+                       capsys)
+    assert code == 1
+    code, out, _ = _main(["status", "o"], monkeypatch, capsys)
+    assert code == 1 and out.splitlines()[-1] == "  # -m stk: the batch had a queries file; add its -p option"
+    plan = plan_batch(["gone1"], load_config(None, [], "stk"), "q.csv", tmp_path / "o", ".h5", 0, None)
+    assert interrupted_record(plan.todo[0]).queries_hash == queries_hash(queries) != ""
+
+
 @pytest.mark.parametrize("line, problem", [
     ('{"input": "a", "output": "a.h5", "seconds": 1, "method": "stk", "seed": 0, "config_hash": ""}',
      "the record has no 'status'"),

@@ -69,7 +69,7 @@ def run_dask(jobs: list[BatchJob], client, on_record: Callable[[ClipRecord], Non
                 record = future.result()
             except Exception as error:  # the task itself failed twice (not a bad input: those give records)
                 record = job_record(futures[future], "failed", error=f"Dask task failed: {error}", seconds=0.0,
-                                    frames=None, points=None, queries_hash="")
+                                    frames=None, points=None)
             on_record(record)
     except BaseException:
         with held_signals():  # a second Ctrl-C does not stop the workers' stop halfway

@@ -40,6 +40,7 @@ class BatchJob:
     cwd: str = ""  #: the batch's working directory (absolute): what a relative ``input`` or ``output`` is read from
     staging: str = ""  #: the batch's staging folder, where ``run_job`` writes the output (set by ``run_batch``)
     stop_event: str | None = None  #: on Dask: the name of the batch's stop Event, checked while the job runs
+    queries_hash: str = ""  #: ``hashes.queries_hash`` of the queries file when the batch was planned
 
 
 def staged_output(staging: str | Path, output: str) -> Path:
@@ -48,17 +49,19 @@ def staged_output(staging: str | Path, output: str) -> Path:
 
 
 def job_record(job: BatchJob, status: str, **values) -> ClipRecord:
-    """The manifest record of ``job`` with ``status``; ``values`` give the other fields (queries_hash included)."""
+    """The manifest record of ``job`` with ``status``; ``values`` give the other fields (``queries_hash``: the job's,
+    from the planned queries file, unless given), so a failed or interrupted input's record says the batch had queries
+    (``condtrack status``'s redo note) as an ``ok`` one does."""
     return ClipRecord(
         input=job.input, output=job.output, status=status, method=job.config.method,
         config_hash=config_hash(job.config), version=__version__, seed=job.seed,
-        input_fingerprint=job.input_fingerprint, cwd=job.cwd, **values,
+        input_fingerprint=job.input_fingerprint, cwd=job.cwd, **{"queries_hash": job.queries_hash, **values},
     )
 
 
 def interrupted_record(job: BatchJob) -> ClipRecord:
     """The manifest record of a job that the batch's interrupt stopped (or never started)."""
-    return job_record(job, "interrupted", error="interrupted", seconds=0.0, frames=None, points=None, queries_hash="")
+    return job_record(job, "interrupted", error="interrupted", seconds=0.0, frames=None, points=None)
 
 
 class Cancelled(CondtrackError):
@@ -94,7 +97,7 @@ def run_job(job: BatchJob) -> ClipRecord:
         digest = queries_hash(job.queries_path)
     except CondtrackError as error:
         return job_record(job, "failed", error=str(error), seconds=round(time.perf_counter() - started, 3),
-                          frames=None, points=None, queries_hash="", threads=threads_in_use())
+                          frames=None, points=None, threads=threads_in_use())
     return job_record(
         job, "ok", error=None, seconds=round(time.perf_counter() - started, 3), frames=summary.n_frames,
         points=summary.n_points, visible=round(summary.visible_share, 4), queries_hash=digest,

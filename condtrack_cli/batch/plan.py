@@ -109,11 +109,11 @@ def skipped_record(job: BatchJob, manifest: list[dict]) -> ClipRecord | None:
     settings, else None."""
     stored = _stored_run(Path(job.output), manifest)
     wanted = {"config_hash": config_hash(job.config), "version": __version__, "seed": job.seed,
-              "queries_hash": queries_hash(job.queries_path), "input_fingerprint": job.input_fingerprint}
+              "queries_hash": job.queries_hash, "input_fingerprint": job.input_fingerprint}
     if stored is None or any(stored.get(key) != value for key, value in wanted.items()):
         return None
     return job_record(job, "skipped", error=None, seconds=0.0, frames=stored.get("frames"),
-                      points=stored.get("points"), queries_hash=wanted["queries_hash"])
+                      points=stored.get("points"))
 
 
 @dataclass(frozen=True)
@@ -144,9 +144,9 @@ def plan_batch(
     if not os.access(out_dir, os.W_OK | os.X_OK):
         raise CondtrackError(f"--out-dir '{out_dir}' is not writable")
     os.close(open_manifest(out_dir))  # a manifest that cannot take the records is refused before any work
-    cwd = os.getcwd()
-    jobs = [BatchJob(i, str(out_dir / f"{n}{suffix}"), config, queries_path, seed, threads, input_fingerprint(i), cwd)
-            for i, n in zip(inputs, names)]
+    cwd, digest = os.getcwd(), queries_hash(queries_path)
+    jobs = [BatchJob(i, str(out_dir / f"{n}{suffix}"), config, queries_path, seed, threads, input_fingerprint(i), cwd,
+                     queries_hash=digest) for i, n in zip(inputs, names)]
     if shard_spec is not None:
         jobs = shard(jobs, *shard_spec)
     skipped, todo = [], []
