@@ -192,13 +192,21 @@ def test_a_batch_with_queries_whose_inputs_all_failed_says_to_add_p(tmp_path, mo
      "the record has no 'seconds'"),
     ('{"input": "a", "output": "a.h5", "status": "ok", "seconds": "1", "method": "stk", "seed": 0, '
      '"config_hash": ""}', "'seconds' is \"1\", not a number"),
+    ('{"input": "a", "output": "a.h5", "status": "ok", "seconds": NaN, "method": "stk", "seed": 0, "config_hash": ""}',
+     "'seconds' is NaN, not a number"),
+    ('{"input": "a", "output": "a.h5", "status": "ok", "seconds": -Infinity, "method": "stk", "seed": 0, '
+     '"config_hash": ""}', "'seconds' is -Infinity, not a number"),
+    ('{"input": "a", "output": "a.h5", "status": "ok", "seconds": 1, "method": "stk", "seed": "0", "config_hash": ""}',
+     "'seed' is \"0\", not an integer"),
     ('{"input": "a", "output": "a.h5", "status": "done", "seconds": 1, "method": "stk", "seed": 0, '
      '"config_hash": ""}', 'unknown status "done" (not one of ok, failed, skipped, interrupted)'),
     ('{"input": "a", "output": "a.h', "not a JSON record"),
     ("[1, 2]", "not a JSON object"),
-], ids=["no status", "no output", "no seconds", "seconds a string", "unknown status", "broken JSON", "a list"])
+], ids=["no status", "no output", "no seconds", "seconds a string", "seconds NaN", "seconds -inf", "seed a string",
+        "unknown status", "broken JSON", "a list"])
 def test_a_broken_manifest_line_is_named(tmp_path, monkeypatch, capsys, line, problem):
-    """Issue 47.9: a record without 'status' was a KeyError traceback; a broken line was silently skipped."""
+    """Issue 47.9: a record without 'status' was a KeyError traceback; a broken line was silently skipped. Seconds of
+    NaN (which Python's json reads) were taken and printed by status --json as NaN, which is not JSON."""
     record(tmp_path, "a", "ok", 1.0)
     with open(tmp_path / "manifest.jsonl", "a") as manifest:
         manifest.write(line + "\n")

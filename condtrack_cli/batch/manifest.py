@@ -8,6 +8,7 @@ manifest; ``read_manifest`` gives the records back (for --skip-existing and
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -91,8 +92,10 @@ def _record_problem(record, fields: dict[str, str]) -> str | None:
     for name, kind in fields.items():
         if name not in record:
             return f"the record has no '{name}'"
-        if not isinstance(record[name], JSON_TYPES[kind]) or isinstance(record[name], bool):
-            return f"'{name}' is {json.dumps(record[name])}, not a {kind}"
+        value = record[name]
+        if (not isinstance(value, JSON_TYPES[kind]) or isinstance(value, bool)
+                or (kind == "number" and not math.isfinite(value))):  # Python's json reads NaN and Infinity
+            return f"'{name}' is {json.dumps(value)}, not {'an' if kind == 'integer' else 'a'} {kind}"
     if "status" in fields and record["status"] not in RECORD_STATUSES:
         return f"unknown status {json.dumps(record['status'])} (not one of {', '.join(RECORD_STATUSES)})"
     return None
