@@ -163,7 +163,10 @@ def run_pass(
             tracker, scores = _track_frames(ahead, info, config, queries, seed, on_frame, history)
         tracks = dataclasses.replace(tracker.finish(history), trackability=scores)
     tracks = tracker.smooth(tracks) if config.smooth else tracks
-    return dataclasses.replace(tracks, cov=symmetrize(np.require(tracks.cov, np.float64, "W")))  # copied if read-only
+    return dataclasses.replace(
+        tracks, cov=symmetrize(np.require(tracks.cov, np.float64, "W")),  # copied if read-only
+        visible=tracks.visible & info.contains(tracks.xy),  # a point that left the frame is not seen, wherever it is
+    )
 
 
 def frame_motions(images: Iterable[np.ndarray], prev: Frame, motion: MotionStages, local: bool,

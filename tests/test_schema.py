@@ -278,3 +278,19 @@ def test_every_reported_covariance_is_exactly_symmetric(method, smooth):
     finite = np.isfinite(t.cov[..., 0, 1])
     assert finite.mean() > 0.9
     np.testing.assert_array_equal(t.cov[..., 0, 1], t.cov[..., 1, 0])
+
+
+@pytest.mark.parametrize("method", ["clf", "cnlf", "auto", "stk"])
+def test_no_row_outside_the_frame_is_reported_visible(method):
+    """The occlusion sample's point 42 left the 320 px frame at x = 320.8 on frame 29 and was written visible there
+    (clf), so `condtrack render` warned that its own input might be another; such rows are now not visible."""
+    import condtrack_cli as ct
+    from conftest import SAMPLES
+
+    sample = SAMPLES / "occlusion"
+    t = ct.track(str(sample), queries=str(sample / "queries.csv"), method=method)
+    x, y = t.xy[..., 0], t.xy[..., 1]
+    with np.errstate(invalid="ignore"):
+        outside = (x < -0.5) | (x > t.info.width - 0.5) | (y < -0.5) | (y > t.info.height - 0.5)
+    assert not (t.visible & outside).any()
+    assert t.visible.mean() > 0.7
