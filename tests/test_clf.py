@@ -237,7 +237,7 @@ def test_an_unmeasurable_point_is_shown_visible_only_where_its_best_match_fits_i
 def test_showing_unmeasurable_points_changes_the_card_scenes_visibility_alone(tmp_path):
     """Issue 31, the card scene of seed 0 (a tuning seed; exact truth): with ``flat_visible_residual`` at its
     default, `auto` reports weak-texture background points visible where their surface was too flat to measure,
-    and its occlusion accuracy rises from 0.906 to 0.938 (without ``lk_fallback``, which
+    and its occlusion accuracy rises from 0.909 to 0.942 (without ``lk_fallback``, which
     does not search again around Lucas-Kanade's position a point shown); every position, covariance and method
     code is the same, bit for bit, as with the option off."""
     from condtrack_cli.evaluate.groundtruth import load_gt_csv
@@ -253,7 +253,7 @@ def test_showing_unmeasurable_points_changes_the_card_scenes_visibility_alone(tm
     runs = [pipeline.run(source, source.info, load_config(None, no_fallback + overrides, method="auto"), queries)
             for overrides in ([], off)]
     shown, paper = (score_tracks(tracks, truth)[0]["OA"] for tracks in runs)
-    assert shown == pytest.approx(0.938, abs=0.003) and paper == pytest.approx(0.906, abs=0.003)
+    assert shown == pytest.approx(0.942, abs=0.003) and paper == pytest.approx(0.909, abs=0.003)
     for name in ("xy", "cov", "method"):
         np.testing.assert_array_equal(getattr(runs[0], name), getattr(runs[1], name))
     assert (runs[0].visible >= runs[1].visible).all()  # only rows not shown before are shown now
