@@ -205,6 +205,8 @@ class ReferenceMatcher:
         """measure: the measurement stage; gamma: the gate's threshold on nu^T S^-1 nu (``measure.gamma``)."""
         self.measure, self.settings, self.gamma = measure, settings, gamma
         t = measure.template_side
+        #: the pixel count of the measurement's noise (``Measurer.pixel_count``; t^2 for a stage without it)
+        self.pixel_count = float(getattr(measure, "pixel_count", t * t))
         self.templates = np.zeros((n_points, t, t), np.float32)
         #: (P, t, t) each point's first reference patch, taken at its query
         self.anchors = np.zeros((n_points, t, t), np.float32)
@@ -585,7 +587,7 @@ class ReferenceMatcher:
 
     def _noise_ssd(self) -> float:
         """m 2 sigma^2: the SSD two patches of m template pixels show from the acquisition noise (sigma) alone."""
-        return self.templates.shape[1] * self.templates.shape[2] * 2 * self.noise_sigma**2
+        return self.pixel_count * 2 * self.noise_sigma**2
 
     def refresh(
         self, index: np.ndarray, prev: Frame, x_prev: np.ndarray, frame: Frame, x_post: np.ndarray,

@@ -57,6 +57,9 @@ class Measurer(Protocol):
     # Optional: ``least_residuals(gray, templates (P, t, t), predicted (P, 2), gate_cov (P, 2, 2)) -> (P,)``, the
     # ``Measurement.residual`` :meth:`measure` would report, alone (the re-acquisition measures further only the
     # points whose match could be used; without it: every point).
+    # Optional: ``pixel_count: float``, the pixel count n of ``cost``'s noise: under a right match and acquisition
+    # noise sigma a cost is about n 2 sigma^2 (without it: t^2, a plain sum over the patch; the ``ssd`` stage's
+    # weighted costs have sum w, the weights scaled so that sum w = sum w^2).
     # Optional: ``resized(side) -> Measurer``, the same stage with patches of odd ``side`` px (the drift check
     # matches each point's first patch at ``filter.clf/cnlf.drift_check_template``; without it: at ``template_side``).
 

@@ -50,6 +50,11 @@ class SSDSettings(StageSettings):
         description="matching cost: ssd (eq. 6), zero_mean or normalised (SSD after matching the patch's mean, and contrast)",
     )
     r_floor: float = Field(1 / 12, gt=0, description="variance added to R_k on each axis (px^2): a grid cell's spread")
+    weight_sigma: float | None = Field(
+        None, gt=0, le=64,
+        description="std of the Gaussian weights of the patch's pixels in the matching cost, around its centre (px); "
+                    "null: every pixel alike (the paper's eq. 6)",
+    )
 
     @field_validator("search_max")
     @classmethod

@@ -65,7 +65,8 @@ import numpy as np
 from condtrack_cli.measure.interface import Measurement
 from condtrack_cli.measure.noise import estimate_noise_sigma, noise_threshold
 from condtrack_cli.measure.response import SSDSettings, infinite_covariance, response
-from condtrack_cli.measure.surfaces import FrameSums, extract_templates, frame_sums, matching_cost, refine, ssd_surfaces
+from condtrack_cli.measure.surfaces import (FrameSums, extract_templates, frame_sums, matching_cost, pixel_count, refine,
+                                            ssd_surfaces)
 
 #: The 8 neighbours (row, column offsets) of a cell.
 _NEIGHBOURS = ((-1, -1), (-1, 0), (-1, 1), (0, -1), (0, 1), (1, -1), (1, 0), (1, 1))
@@ -114,7 +115,7 @@ def measure(
     z, R = np.full((count, 2), np.nan), infinite_covariance(count)
     residual, informative, aligned = np.full(count, np.nan), np.zeros(count, bool), np.full(count, np.nan)
     if groups and sums is None:
-        sums = frame_sums(gray, settings.template, settings.cost)
+        sums = frame_sums(gray, settings.template, settings.cost, settings.weight_sigma)
     for points in groups:
         part = _measure_group(gray, sums, templates[points], predicted[points], gate_cov[points],
                               half_sizes[points], settings, sigma)
@@ -136,7 +137,7 @@ def least_residuals(gray: np.ndarray, templates: np.ndarray, predicted: np.ndarr
     predicted, gate_cov, half_sizes, groups = _grouped(predicted, gate_cov, settings)
     residual = np.full(len(predicted), np.nan)
     if groups and sums is None:
-        sums = frame_sums(gray, settings.template, settings.cost)
+        sums = frame_sums(gray, settings.template, settings.cost, settings.weight_sigma)
     for points in groups:
         part = _gate_minima(gray, sums, templates[points], predicted[points], gate_cov[points], half_sizes[points],
                             settings)
@@ -219,7 +220,7 @@ def _gate_minima(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, predi
     height, width = gray.shape
     x = centres[:, 0, None, None] + grid[None, None, :]  # (P, 1, G) candidate columns
     y = centres[:, 1, None, None] + grid[None, :, None]  # (P, G, 1) candidate rows
-    r_full = ssd_surfaces(gray, templates, centres, reach, settings.cost, sums)
+    r_full = ssd_surfaces(gray, templates, centres, reach, settings.cost, sums, settings.weight_sigma)
     np.copyto(r_full, np.inf, where=((x < 0) | (x >= width)) | ((y < 0) | (y >= height)))  # outside the frame
 
     inner = slice(half, half + 2 * largest + 1)  # the candidate offsets, |dx|, |dy| <= largest
@@ -257,12 +258,13 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
     half = settings.support // 2
     r_full, gate, candidates, gated, found, row, col, residual, integer = _gate_minima(
         gray, sums, templates, predicted, gate_cov, half_sizes, settings)
-    z, at_z = refine(gray, templates, integer, settings.cost)
+    z, at_z = refine(gray, templates, integer, settings.cost, settings.weight_sigma)
 
     offsets = np.arange(-half, half + 1)
     rows, cols = (row[:, None] + offsets)[:, :, None], (col[:, None] + offsets)[:, None, :]
     support = r_full[np.arange(count)[:, None, None], rows, cols]  # W(z_k), (P, n, n)
-    R, informative, c_eq8 = response(support, sigma, t * t, settings, z - integer)
+    pixels = pixel_count(t, settings.weight_sigma)  # the noise tests' pixel count
+    R, informative, c_eq8 = response(support, sigma, pixels, settings, z - integer)
 
     peak = residual[:, None, None]
     neighbours = support[:, half - 1 : half + 2, half - 1 : half + 2]
@@ -270,7 +272,7 @@ def _measure_group(gray: np.ndarray, sums: FrameSums, templates: np.ndarray, pre
     second = np.zeros(count, bool)  # a deep local minimum in the gate beyond W(z_k)
     if settings.ambiguity_ratio is not None:  # None: off (the paper's), only eq. (10) and the uniform test judge
         log_ratio = np.log(1.0 / settings.ambiguity_ratio)
-        equalised = -np.inf if settings.equalise_alpha is None else noise_threshold(sigma, t * t, settings.equalise_alpha)
+        equalised = -np.inf if settings.equalise_alpha is None else noise_threshold(sigma, pixels, settings.equalise_alpha)
         # The depth test below accepts the residuals up to a bound (it is monotone in the residual): a looser
         # bound (twice its excess, 4 ulps more) leaves it the candidates it may accept, of the points it can change.
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -301,6 +303,8 @@ class SSDMeasure:
     def __init__(self, settings: SSDSettings):
         self.settings = settings
         self.template_side = settings.template  #: side t of the reference patches (px)
+        #: n_w, the pixel count of the noise tests: t^2, or sum w with ``weight_sigma`` (``surfaces.pixel_weights``)
+        self.pixel_count = pixel_count(settings.template, settings.weight_sigma)
         #: the last frame measured and its :func:`frame_sums`, reused while the same frame is measured again
         #: (``auto`` measures its CLF and its CNLF points apart)
         self._sums: tuple[np.ndarray, FrameSums] | None = None
@@ -321,7 +325,7 @@ class SSDMeasure:
 
     def cost(self, templates: np.ndarray, patches: np.ndarray) -> np.ndarray:
         """(M,) :func:`matching_cost` of aligned (M, t, t) patch pairs with this stage's cost."""
-        return matching_cost(templates, patches, self.settings.cost)
+        return matching_cost(templates, patches, self.settings.cost, self.settings.weight_sigma)
 
     def searched(self, predicted: np.ndarray, gate_cov: np.ndarray, xy: np.ndarray) -> np.ndarray:
         """:func:`searched` with this stage's settings."""
@@ -348,7 +352,7 @@ class SSDMeasure:
         """The frame's :func:`frame_sums`, computed once per frame (``auto`` measures its CLF and its CNLF points
         apart)."""
         if self._sums is None or self._sums[0] is not gray:
-            self._sums = (gray, frame_sums(gray, self.settings.template, self.settings.cost))
+            self._sums = (gray, frame_sums(gray, self.settings.template, self.settings.cost, self.settings.weight_sigma))
         return self._sums[1]
 
 

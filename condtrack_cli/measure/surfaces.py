@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -34,13 +35,39 @@ def extract_templates(gray: np.ndarray, xy: np.ndarray, size: int) -> np.ndarray
     return (top * (1 - wy) + bottom * wy).astype(np.float32)
 
 
+@functools.lru_cache(maxsize=16)
+def _axis_weights(side: int, sigma: float) -> np.ndarray:
+    """(side,) read-only weights of one axis of :func:`pixel_weights`."""
+    g = np.exp(-0.5 * ((np.arange(side) - side // 2) / sigma) ** 2)
+    g *= np.sqrt(g.sum() ** 2 / (g * g).sum() ** 2)  # sum w = sum w^2 over the square of w = g g^T
+    g.flags.writeable = False
+    return g
+
+
+def pixel_weights(side: int, sigma: float | None) -> np.ndarray | None:
+    """(side, side) weights w of the matching cost's pixels: a Gaussian of std ``sigma`` px around the patch's
+    centre, scaled so that sum w = sum w^2 (the weighted sum of n_w = sum w pixel noises then has the mean and the
+    variance of an unweighted sum of n_w: the noise tests read n_w as the pixel count); None (sigma None): every
+    pixel alike, the paper's eq. (6)."""
+    if sigma is None:
+        return None
+    g = _axis_weights(side, sigma)
+    return np.outer(g, g)
+
+
+def pixel_count(side: int, sigma: float | None) -> float:
+    """n_w = sum w of :func:`pixel_weights` (side^2 unweighted): the pixel count that the noise tests read."""
+    weights = pixel_weights(side, sigma)
+    return float(side * side) if weights is None else float(weights.sum())
+
+
 class FrameSums(NamedTuple):
     """Window sums of a frame at every pixel (:func:`frame_sums`), border replicated.
 
     Element [y, x] of each (H, W) float64 table is a sum over the ``side`` x ``side`` window
-    centred on pixel (x, y): ``total`` and ``squares`` (cost 'ssd'), of I and of I^2; ``spread``
-    (the other costs), of I'^2 = max(sum I^2 - (sum I)^2 / side^2, 0) (I' = I less its mean).
-    None: not needed by ``cost``.
+    centred on pixel (x, y), weighted by :func:`pixel_weights` of ``sigma`` (n = sum w, side^2 without weights):
+    ``total`` and ``squares`` (cost 'ssd'), of w I and of w I^2; ``spread`` (the other costs), of
+    w I'^2 = max(sum w I^2 - (sum w I)^2 / n, 0) (I' = I less its weighted mean). None: not needed by ``cost``.
     """
 
     total: np.ndarray | None
@@ -48,23 +75,29 @@ class FrameSums(NamedTuple):
     spread: np.ndarray | None
     side: int
     cost: str
+    sigma: float | None = None
 
 
-def frame_sums(gray: np.ndarray, side: int, cost: str = "ssd") -> FrameSums:
-    """:class:`FrameSums` of the (H, W) float32 frame ``gray`` for windows of odd ``side`` (px) and ``cost``: two
-    box filters (float64, border replicated), computed once per frame; each candidate's window sums are then one
-    look-up."""
+def frame_sums(gray: np.ndarray, side: int, cost: str = "ssd", sigma: float | None = None) -> FrameSums:
+    """:class:`FrameSums` of the (H, W) float32 frame ``gray`` for windows of odd ``side`` (px), ``cost`` and the
+    weights of ``sigma`` (:func:`pixel_weights`): two box filters, or two separable filters with weights (float64,
+    border replicated), computed once per frame; each candidate's window sums are then one look-up."""
     import cv2
 
-    window = (side, side)  # float32 in, float64 sums: the same values as from a float64 copy, without making one
-    total = cv2.boxFilter(gray, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
-    squares = cv2.sqrBoxFilter(gray, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
+    if sigma is None:
+        window = (side, side)  # float32 in, float64 sums: the same values as from a float64 copy, without making one
+        total = cv2.boxFilter(gray, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
+        squares = cv2.sqrBoxFilter(gray, cv2.CV_64F, window, normalize=False, borderType=cv2.BORDER_REPLICATE)
+    else:
+        g = _axis_weights(side, sigma)
+        total = cv2.sepFilter2D(gray, cv2.CV_64F, g, g, borderType=cv2.BORDER_REPLICATE)
+        squares = cv2.sepFilter2D(np.square(gray, dtype=np.float64), cv2.CV_64F, g, g, borderType=cv2.BORDER_REPLICATE)
     if cost == "ssd":
-        return FrameSums(total, squares, None, side, cost)
-    spread = np.multiply(total, total, out=total)  # max(squares - total^2 / side^2, 0), in place of total
-    spread /= side * side
+        return FrameSums(total, squares, None, side, cost, sigma)
+    spread = np.multiply(total, total, out=total)  # max(squares - total^2 / n, 0), in place of total
+    spread /= pixel_count(side, sigma)
     np.subtract(squares, spread, out=spread)
-    return FrameSums(None, None, np.maximum(spread, 0.0, out=spread), side, cost)
+    return FrameSums(None, None, np.maximum(spread, 0.0, out=spread), side, cost, sigma)
 
 
 #: Windows of at least this side (px) are copied one slice per point: at the coarse search's 81-93 px that is
@@ -120,7 +153,7 @@ def _sliced_windows(table: np.ndarray, centres: np.ndarray, reach: int) -> np.nd
 
 
 def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, reach: int,
-                 cost: str = "ssd", sums: FrameSums | None = None) -> np.ndarray:
+                 cost: str = "ssd", sums: FrameSums | None = None, sigma: float | None = None) -> np.ndarray:
     """(P, G, G) float64 r_k (eq. 6) at integer candidates centres + (dx, dy), |dx|, |dy| <= reach, G = 2 reach + 1.
 
     Element [p, i, j] is the matching cost between templates[p] (t x t) and the frame
@@ -143,8 +176,8 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
 
     t = templates.shape[1]
     g = 2 * reach + 1
-    sums = _checked_sums(gray, t, cost, sums)
-    mean, energy, kernels = _centred(templates)
+    sums = _checked_sums(gray, t, cost, sums, sigma)
+    mean, energy, kernels = _centred(templates, pixel_weights(t, sigma))
     patches = np.empty((len(templates), g + t - 1, g + t - 1), np.float32)
     np.subtract(_windows(gray, centres, reach + t // 2), mean, out=patches,
                 casting="same_kind")  # I - m in float64, rounded to float32: small sums
@@ -155,7 +188,8 @@ def ssd_surfaces(gray: np.ndarray, templates: np.ndarray, centres: np.ndarray, r
     if cost == "ssd":
         sum_i, sum_sq = (_windows(table, centres, reach) for table in (sums.total, sums.squares))
         m = mean[:, :, :1]
-        return np.maximum(sum_sq - 2.0 * m * sum_i + t * t * m * m - 2.0 * sum_it + energy, 0.0)  # eq. (6)
+        n = pixel_count(t, sigma)
+        return np.maximum(sum_sq - 2.0 * m * sum_i + n * m * m - 2.0 * sum_it + energy, 0.0)  # eq. (6)
     spread = _windows(sums.spread, centres, reach)  # sum I'^2
     if cost == "zero_mean":
         return _zero_mean_cost(sum_it, spread, energy)
@@ -190,23 +224,26 @@ def zero_mean_minima(gray: np.ndarray, templates: np.ndarray, centres: np.ndarra
     return minima
 
 
-def _checked_sums(gray: np.ndarray, side: int, cost: str, sums: FrameSums | None) -> FrameSums:
+def _checked_sums(gray: np.ndarray, side: int, cost: str, sums: FrameSums | None,
+                  sigma: float | None = None) -> FrameSums:
     """``sums``, or :func:`frame_sums` of ``gray`` where None; ValueError where they are not of ``side`` px windows for
-    ``cost``."""
+    ``cost`` and the weights of ``sigma``."""
     if sums is None:
-        sums = frame_sums(gray, side, cost)
-    if (sums.side, sums.cost) != (side, cost):
-        raise ValueError(f"frame_sums of {sums.side} px windows for cost {sums.cost!r}: {side} px templates, cost {cost!r}")
+        sums = frame_sums(gray, side, cost, sigma)
+    if (sums.side, sums.cost, sums.sigma) != (side, cost, sigma):
+        raise ValueError(f"frame_sums of {sums.side} px windows for cost {sums.cost!r}, weights {sums.sigma}: "
+                         f"{side} px templates, cost {cost!r}, weights {sigma}")
     return sums
 
 
-def _centred(templates: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(P, t, t) ``templates``' means m (P, 1, 1) and energies sum T'^2 (P, 1, 1), float64, and the mean-free
-    T' = T - m as float32 kernels (P, t, t)."""
+def _centred(templates: np.ndarray, weights: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(P, t, t) ``templates``' means m (P, 1, 1) and energies sum w T'^2 (P, 1, 1), float64, and the kernels
+    w T' (T' = T - m) as float32 (P, t, t); the means are weighted by the (t, t) ``weights`` w (None: 1)."""
     tmpl = templates.astype(np.float64)
-    mean = tmpl.mean(axis=(1, 2), keepdims=True)
+    mean = _mean(tmpl, weights)
     tmpl -= mean
-    return mean, (tmpl * tmpl).sum(axis=(1, 2))[:, None, None], tmpl.astype(np.float32)
+    kernels = tmpl if weights is None else tmpl * weights
+    return mean, _weighted(tmpl * tmpl, weights)[:, None, None], kernels.astype(np.float32)
 
 
 def _zero_mean_cost(sum_it: np.ndarray, spread: np.ndarray, energy: np.ndarray) -> np.ndarray:
@@ -218,19 +255,21 @@ def _zero_mean_cost(sum_it: np.ndarray, spread: np.ndarray, energy: np.ndarray) 
     return np.maximum(sum_it, 0.0, out=sum_it)
 
 
-def matching_cost(templates: np.ndarray, patches: np.ndarray, cost: str) -> np.ndarray:
-    """(M,) the ``cost`` of :func:`ssd_surfaces` between aligned (M, t, t) ``templates`` and ``patches``."""
+def matching_cost(templates: np.ndarray, patches: np.ndarray, cost: str, sigma: float | None = None) -> np.ndarray:
+    """(M,) the ``cost`` of :func:`ssd_surfaces` (with the weights of ``sigma``) between aligned (M, t, t)
+    ``templates`` and ``patches``."""
     a = np.asarray(templates, np.float64)
     b = np.asarray(patches, np.float64)
+    weights = pixel_weights(a.shape[1], sigma)
     if cost == "ssd":
-        return ((a - b) ** 2).sum(axis=(1, 2))
-    a = a - a.mean(axis=(1, 2), keepdims=True)
-    b = b - b.mean(axis=(1, 2), keepdims=True)
+        return _weighted((a - b) ** 2, weights)
+    a = a - _mean(a, weights)
+    b = b - _mean(b, weights)
     if cost == "zero_mean":
-        return ((a - b) ** 2).sum(axis=(1, 2))
-    energy, spread = (a * a).sum(axis=(1, 2)), (b * b).sum(axis=(1, 2))
+        return _weighted((a - b) ** 2, weights)
+    energy, spread = _weighted(a * a, weights), _weighted(b * b, weights)
     with np.errstate(invalid="ignore", divide="ignore"):
-        rho = np.where(spread > 0, (a * b).sum(axis=(1, 2)) / np.sqrt(energy * spread), 0.0)
+        rho = np.where(spread > 0, _weighted(a * b, weights) / np.sqrt(energy * spread), 0.0)
     return 2.0 * energy * (1.0 - np.clip(np.nan_to_num(rho), -1.0, 1.0))
 
 
@@ -253,52 +292,67 @@ def _shift(window: np.ndarray, offset: np.ndarray) -> np.ndarray:
     return _towards(rows[:, 1:-1], rows[:, 2:], rows[:, :-2], fy)
 
 
-def refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str = "ssd") -> tuple[np.ndarray, np.ndarray]:
+def refine(gray: np.ndarray, templates: np.ndarray, start: np.ndarray, cost: str = "ssd",
+           sigma: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(P, 2) sub-pixel z_k: the continuous minimum of eq. (6) within +-0.5 px of the integer minimum ``start``,
     and (P,) r(z_k), the cost there (grey levels^2).
 
-    start: (P, 2) integer-valued positions (px). Gauss-Newton on r(z) = sum_y [T(y) - I_k(z + y)]^2
-    with I_k bilinear (border replicated) and its gradient by central differences, ``_REFINE_STEPS``
-    steps, each clamped so that z stays within the integer minimum's cell. The normal
-    matrix is damped by 1e-3 of its trace so that the step along an edge (no
+    start: (P, 2) integer-valued positions (px). Gauss-Newton on r(z) = sum_y w(y) [T(y) - I_k(z + y)]^2
+    (w the :func:`pixel_weights` of ``sigma``, 1 without) with I_k bilinear (border replicated) and its gradient
+    by central differences, ``_REFINE_STEPS`` steps, each clamped so that z stays within the integer minimum's
+    cell. The normal matrix is damped by 1e-3 of its trace so that the step along an edge (no
     information) stays small. Other ``cost``: that of :func:`matching_cost`, the
     frame patch given the template's mean (and contrast) at each step (held
     fixed within a step).
     """
     t = templates.shape[1]
+    weights = pixel_weights(t, sigma)
     # I_k at start + [-t//2 - 2, t//2 + 2]^2: frame pixels (start is integer), clamped into the frame
     window = _windows(gray, start.astype(np.intp), t // 2 + 2).astype(np.float64)
     reference = templates.astype(np.float64)
     energy = None
     if cost != "ssd":
-        reference = reference - reference.mean(axis=(1, 2), keepdims=True)
-        energy = (reference * reference).sum(axis=(1, 2))
+        reference = reference - _mean(reference, weights)
+        energy = _weighted(reference * reference, weights)
     offset = np.zeros(start.shape)
     for step in range(_REFINE_STEPS):
         # I_k at z + [-t//2 - 1, t//2 + 1]^2; at the first step z = start, the window's inner pixels
-        moved = _matched(_shift(window, offset) if step else window[:, 1:-1, 1:-1].copy(), cost, energy)
+        moved = _matched(_shift(window, offset) if step else window[:, 1:-1, 1:-1].copy(), cost, energy, weights)
         gx = (moved[:, 1:-1, 2:] - moved[:, 1:-1, :-2]) / 2.0
         gy = (moved[:, 2:, 1:-1] - moved[:, :-2, 1:-1]) / 2.0
         error = reference - moved[:, 1:-1, 1:-1]
-        a, b, c = (gx * gx).sum(axis=(1, 2)), (gx * gy).sum(axis=(1, 2)), (gy * gy).sum(axis=(1, 2))
+        wgx, wgy = (gx, gy) if weights is None else (gx * weights, gy * weights)
+        a, b, c = (wgx * gx).sum(axis=(1, 2)), (wgx * gy).sum(axis=(1, 2)), (wgy * gy).sum(axis=(1, 2))
         damping = 1e-3 * (a + c) + 1e-12
         a, c = a + damping, c + damping
-        ex, ey = (gx * error).sum(axis=(1, 2)), (gy * error).sum(axis=(1, 2))
+        ex, ey = (wgx * error).sum(axis=(1, 2)), (wgy * error).sum(axis=(1, 2))
         det = a * c - b * b
         step = np.stack([c * ex - b * ey, a * ey - b * ex], axis=1) / det[:, None]
         offset = np.clip(offset + step, -0.5, 0.5)
-    error = reference - _matched(_shift(window, offset), cost, energy)[:, 1:-1, 1:-1]  # the cost at z_k itself
-    return start + offset, (error * error).sum(axis=(1, 2))
+    error = reference - _matched(_shift(window, offset), cost, energy, weights)[:, 1:-1, 1:-1]  # the cost at z_k
+    return start + offset, _weighted(error * error, weights)
 
 
-def _matched(moved: np.ndarray, cost: str, energy: np.ndarray | None) -> np.ndarray:
+def _weighted(values: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+    """(P,) sums of (P, t, t) ``values`` weighted by (t, t) ``weights`` (None: 1)."""
+    return (values if weights is None else values * weights).sum(axis=(1, 2))
+
+
+def _mean(values: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+    """(P, 1, 1) means of (P, t, t) ``values`` weighted by (t, t) ``weights`` (None: 1)."""
+    if weights is None:
+        return values.mean(axis=(1, 2), keepdims=True)
+    return _weighted(values, weights)[:, None, None] / weights.sum()
+
+
+def _matched(moved: np.ndarray, cost: str, energy: np.ndarray | None, weights: np.ndarray | None = None) -> np.ndarray:
     """(P, t + 2, t + 2) frame windows ``moved`` (float64, modified in place) as ``cost`` compares them with the
-    reference: as they are (ssd), less the mean of their inner t x t pixels, and (normalised) scaled to the
-    reference's (P,) mean-free ``energy`` over them."""
+    reference: as they are (ssd), less the (``weights``-weighted) mean of their inner t x t pixels, and (normalised)
+    scaled to the reference's (P,) mean-free ``energy`` over them."""
     if cost != "ssd":
-        moved -= moved[:, 1:-1, 1:-1].mean(axis=(1, 2), keepdims=True)
+        moved -= _mean(moved[:, 1:-1, 1:-1], weights)
         if cost == "normalised":
             centred = moved[:, 1:-1, 1:-1]
-            spread = (centred * centred).sum(axis=(1, 2))
+            spread = _weighted(centred * centred, weights)
             moved *= np.sqrt(energy / np.where(spread > 0, spread, np.inf))[:, None, None]
     return moved
