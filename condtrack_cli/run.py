@@ -18,6 +18,7 @@ from condtrack_cli.errors import CondtrackError, write_error
 from condtrack_cli.io.atomic import output_folder
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.write import csv_text, write_tracks
+from condtrack_cli.streams import drop
 
 
 @dataclass(frozen=True)
@@ -87,7 +88,7 @@ def write_stdout(text: str) -> None:
         sys.stdout.write(text)
         sys.stdout.flush()
     except OSError as error:
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # the unwritten rest is dropped, not retried at exit
+        drop(sys.stdout)  # the unwritten rest is not retried at exit
         raise write_error("stdout", error) from None
 
 

@@ -426,3 +426,32 @@ def test_a_named_pipe_input_is_refused_at_once(tmp_path):
     assert process.returncode == 1 and stderr == (
         f"Error: {fifo}: not a regular file (a named pipe); give a video file or a folder of frames\n")
     assert [p.name for p in tmp_path.iterdir()] == ["clip.mp4"]
+
+
+def _with_a_closed_pipe(stream: str, *args: str) -> subprocess.CompletedProcess:
+    """Run the command line with its ``stream`` ("stdout" or "stderr") a pipe whose reader has already gone."""
+    reader, writer = os.pipe()
+    os.close(reader)
+    try:
+        return subprocess.run([sys.executable, "-c", "from condtrack_cli.cli import main; main()", *args],
+                              capture_output=False, text=True, timeout=300,
+                              **{stream: writer, ("stderr" if stream == "stdout" else "stdout"): subprocess.PIPE})
+    finally:
+        os.close(writer)
+
+
+def test_a_reader_closing_the_pipe_early_is_not_an_error(tmp_path):
+    folder = _frames_folder(tmp_path)
+    csv, other = tmp_path / "a.csv", tmp_path / "b.csv"
+    assert run_cli("track", str(folder), "-m", "stk", "-o", str(csv), "-q").returncode == 0
+    header, first, *rest = csv.read_text().splitlines(keepends=True)
+    fields = first.split(",")
+    fields[2] = f"{float(fields[2]) + 10:f}"  # the first row's x 10 px off: compare says they differ (exit 1)
+    other.write_text("".join([header, ",".join(fields), *rest]))
+    for args, code in [(("--help",), 0), (("info", str(csv)), 0), (("compare", "--strict", str(csv), str(other)), 1),
+                       (("track", str(folder), "-m", "stk", "-q", "--overlay", str(tmp_path / "o.mp4")), 0)]:
+        result = _with_a_closed_pipe("stdout", *args)
+        assert (result.returncode, result.stderr) == (code, ""), args  # the command's own code, nothing said
+    assert (tmp_path / "o.mp4").stat().st_size > 0 and not list(tmp_path.glob("*.part"))
+    result = _with_a_closed_pipe("stderr", "track", str(tmp_path / "nowhere"))
+    assert (result.returncode, result.stdout) == (2, "")

@@ -17,6 +17,7 @@ from condtrack_cli import __version__
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.interrupts import exit_code, raise_on_sigterm
 from condtrack_cli.progress import show_warnings
+from condtrack_cli.streams import QuietPipe
 
 #: Command name -> (its object as ``module:attribute`` under condtrack_cli.cli, the first paragraph of its help).
 #: The paragraph is what ``condtrack --help`` lists; a test keeps it equal to the command's own.
@@ -77,6 +78,7 @@ def cli() -> None:
 def main() -> None:
     """Console entry point: one-line ``Error: ...`` and a non-zero exit on bad input."""
     raise_on_sigterm()
+    sys.stdout, sys.stderr = (stream and QuietPipe(stream) for stream in (sys.stdout, sys.stderr))
     # FFmpeg's own log lines ("moov atom not found") off, as OpenCV reads it on its first video open in the process
     # (batch workers inherit it); condtrack's error names the file. A level the user set is kept.
     os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
