@@ -216,7 +216,19 @@ def test_a_negative_variance_is_refused_showing_it(tmp_path, cov_xx, cov_yy):
         _edited_track_csv(path, 4, "20.0,1,0,1,", f"20.0,{cov_xx},0,{cov_yy},")
     assert str(refused.value) == (f"{path}: line 4 (point_id 0, frame 2): cov_xx, cov_yy is {cov_xx}, {cov_yy}: "
                                   "a variance is never negative")
-    _edited_track_csv(path, 4, "20.0,1,0,1,", "20.0,nan,-0.5,inf,")
+    _edited_track_csv(path, 4, "20.0,1,0,1,", "20.0,inf,-0.5,inf,")
+
+
+@pytest.mark.parametrize("cov", ["nan,0,1", "1,nan,1", "inf,0,nan"])
+def test_a_covariance_partly_undefined_is_refused_showing_it(tmp_path, cov):
+    """docs/schema.md: nan means the row has no covariance, so all three cells are nan or none is; a hand-edited row
+    with one nan was read, and eval counted it as having no covariance."""
+    path = tmp_path / "t.csv"
+    with pytest.raises(CondtrackError) as refused:
+        _edited_track_csv(path, 4, "20.0,1,0,1,", f"20.0,{cov},")
+    assert str(refused.value) == (f"{path}: line 4 (point_id 0, frame 2): cov_xx, cov_xy, cov_yy is "
+                                  f"{cov.replace(',', ', ')}: a covariance is undefined (nan) as a whole or not at all")
+    assert np.isnan(_edited_track_csv(path, 4, "20.0,1,0,1,", "20.0,nan,nan,nan,")[0].cov[0, 2]).all()
 
 
 @pytest.mark.parametrize("dof, value", [("2.5", 2.5), ("1e6", 1e6), ("inf", np.inf)])

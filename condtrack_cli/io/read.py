@@ -97,6 +97,9 @@ def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
                       (~np.isfinite(values[:, :2]).all(axis=1), "x, y is {x}, {y}: a row is a position, always finite"),
                       ((values[:, 2] < 0) | (values[:, 4] < 0), "cov_xx, cov_yy is {cov_xx}, {cov_yy}: a variance is "
                        "never negative"),
+                      (np.isnan(values[:, 2:]).any(axis=1) & ~np.isnan(values[:, 2:]).all(axis=1),
+                       "cov_xx, cov_xy, cov_yy is {cov_xx}, {cov_xy}, {cov_yy}: a covariance is undefined (nan) as a "
+                       "whole or not at all"),
                       (~(row_dof > 2), "dof is {dof}, expected a number above 2 or inf (Gaussian)"),
                       (repeated_rows(ids, frames), "a second row for the same point_id and frame")):
         if bad.any():
