@@ -247,17 +247,24 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     return path, parsed
 
 
-def _apply_override(raw: dict, path: list[str], value: Any, name: str) -> None:
-    """Set the key ``path`` of ``raw`` to ``value``, for the option ``name`` (``--set a.b=1``, ``--smooth``, ``-m``)."""
+def _apply_override(raw: dict, path: list[str], value: Any, name: str, set_by: dict[tuple[str, ...], str]) -> None:
+    """Set the key ``path`` of ``raw`` to ``value``, for the option ``name`` (``--set a.b=1``, ``--smooth``, ``-m``).
+
+    ``set_by``: the option that set each key path before (updated); a section that one of them set to a value
+    (``--set filter=3``) is blamed on it, not on ``name``.
+    """
     node = raw
     for depth, part in enumerate(path[:-1]):
         child = node.get(part)
         if child is None:
             child = node[part] = {}
         if not isinstance(child, dict):
-            raise CondtrackError(f"{name}: config key '{'.'.join(path[: depth + 1])}' is {plain(child)}, not a section")
+            key = tuple(path[: depth + 1])
+            raise CondtrackError(f"{set_by.get(key, name)}: config key '{'.'.join(key)}' is {plain(child)}, "
+                                 "not a section")
         node = child
     node[path[-1]] = value
+    set_by[tuple(path)] = name
 
 
 def read_yaml(path: str | Path) -> dict:
@@ -324,15 +331,16 @@ def load_config(
     raw = copy.deepcopy(raw)
     given = [(f"--set {text}", text) for text in overrides] + list((options or {}).items())
     parsed = [(name, parse_override(text)) for name, text in given]
+    set_by = {}
     for name, override in parsed:
-        _apply_override(raw, *override, name)
+        _apply_override(raw, *override, name, set_by)
     _warn_overridden(parsed[: len(overrides)], parsed[len(overrides) :]
                      + ([("-m", (["filter", "method"], method))] if method is not None else []))
     if method is not None:
         written = raw.get("filter")
         if isinstance(written, dict) and "method" in written:  # a bad value stays bad under -m
             check_method(written["method"])
-        _apply_override(raw, ["filter", "method"], method, f"-m {method}")
+        _apply_override(raw, ["filter", "method"], method, f"-m {method}", set_by)
     config = resolve(raw)
     for name, (key_path, _) in parsed:
         reason = _unused_because(config, key_path)

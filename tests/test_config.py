@@ -91,8 +91,15 @@ def test_an_option_setting_a_key_under_a_value_that_is_not_a_section_names_that_
         load_config(tmp_path / "c.yaml", method="stk")
     with pytest.raises(CondtrackError, match=r"^--smooth: config key 'filter' is 3, not a section$"):
         load_config(tmp_path / "c.yaml", options={"--smooth": "filter.smooth=true"})
-    with pytest.raises(CondtrackError, match=r"^--set filter.x.y=1: config key 'filter.x' is 2, not a section$"):
+    with pytest.raises(CondtrackError, match=r"^--set filter.x=2: config key 'filter.x' is 2, not a section$"):
         load_config(overrides=["filter.x=2", "filter.x.y=1"])
+
+
+@pytest.mark.parametrize("method, options", [("clf", {}), (None, {"--smooth": "filter.smooth=true"})])
+def test_a_set_that_makes_a_section_a_value_is_named_not_the_option_after_it(method, options):
+    """'--set filter=3 -m clf' said "-m clf: config key 'filter' is 3, not a section", blaming the -m (or --smooth)."""
+    with pytest.raises(CondtrackError, match=r"^--set filter=3: config key 'filter' is 3, not a section$"):
+        load_config(overrides=["filter=3"], method=method, options=options)
 
 
 @pytest.mark.parametrize("key", ["measure.noise_sigma", "motion.q_floor", "filter.clf.drift_check", "detect.min_distance"])
