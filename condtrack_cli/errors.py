@@ -59,6 +59,11 @@ def write_error(path: object, error: OSError) -> CondtrackError:
     return CondtrackError(f"{path}: cannot write ({error.strerror or error})")
 
 
+def counted(count: int, noun: str) -> str:
+    """``'1 frame'``, ``'2 frames'``: ``count`` and ``noun``, plural unless ``count`` is 1."""
+    return f"{count} {noun}{'' if count == 1 else 's'}"
+
+
 def plain(value: object) -> str:
     """``value`` for a message, as Python shows it: numpy scalars and arrays (also inside lists, tuples and dicts) as
     the plain values they hold, ``'abc'`` and ``3`` rather than ``np.str_('abc')`` and ``np.int64(3)``."""

@@ -37,7 +37,7 @@ from typing import Iterable, Iterator
 import cv2
 import numpy as np
 
-from condtrack_cli.errors import CondtrackError, warn, write_error
+from condtrack_cli.errors import CondtrackError, counted, warn, write_error
 from condtrack_cli.frames.readers import opencv_log
 from condtrack_cli.io.atomic import atomic_path, check_writable, publish, staging_folder
 from condtrack_cli.predictive import ellipse_m2
@@ -256,7 +256,7 @@ def _drawn(overlay: Overlay, frames: Iterable[np.ndarray], out_path: Path) -> It
         yield overlay.draw(k, frame)
         count = k + 1
     if count != overlay.n_frames:
-        raise CondtrackError(f"{out_path}: the input has {count} frames, the tracks {overlay.n_frames}")
+        raise CondtrackError(f"{out_path}: the input has {counted(count, 'frame')}, the tracks {overlay.n_frames}")
 
 
 def _write_png(path: Path, image: np.ndarray, named: Path) -> None:

@@ -245,6 +245,27 @@ def test_render_of_a_header_only_csv_says_it_holds_no_row(frames_folder, tmp_pat
     assert "frame -1" not in result.stderr and (tmp_path / "o.mp4").exists()
 
 
+
+def test_render_says_an_empty_hdf5_holds_no_track_and_counts_one_frame_in_the_singular(frames_folder, tmp_path):
+    """An HDF5 file of no track (a header-only CSV written back) was said to be 'a header only', CSV wording, and a
+    one-frame input 'has 96x64 px, 1 frames'."""
+    import condtrack_cli as ct
+    from condtrack_cli.io.write import csv_text
+
+    csv, h5, out = tmp_path / "t.csv", tmp_path / "t.h5", tmp_path / "o.mp4"
+    csv.write_text(csv_text(make_tracks()).splitlines()[0] + "\n")
+    ct.read_tracks(csv).to_hdf5(h5)
+    result = CliRunner().invoke(cli, ["render", str(h5), str(frames_folder), "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    assert f"warning: {h5} holds no track (0 frames): no point to show on {frames_folder}" in result.stderr
+    for path in sorted(frames_folder.iterdir())[1:]:
+        path.unlink()
+    result = CliRunner().invoke(cli, ["render", str(write_h5(h5)), str(frames_folder), "-o", str(out)])
+    assert str(result.exception).endswith(f"but {frames_folder} has 96x64 px, 1 frame")
+    with pytest.raises(CondtrackError, match="the input has 1 frame, the tracks 8$"):
+        render_overlay(make_tracks(), [np.zeros((HEIGHT, WIDTH), np.uint8)], out, 0.0)
+
+
 def test_render_warns_about_a_csv_with_visible_positions_outside_the_frame(frames_folder, tmp_path):
     """Issue 28.9: a CSV holds no frame size; visible positions outside the input's frame say it is another input's."""
     from condtrack_cli.io.write import csv_text

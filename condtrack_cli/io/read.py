@@ -21,7 +21,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from condtrack_cli import READABLE_SCHEMA_VERSIONS
-from condtrack_cli.errors import CondtrackError, MissingInput, plain, warn
+from condtrack_cli.errors import CondtrackError, MissingInput, counted, plain, warn
 from condtrack_cli.io.formats import is_hdf5, track_format
 from condtrack_cli.io.write import CSV_COLUMNS, CSV_COLUMNS_1, EXTRA_ATTRIBUTES
 from condtrack_cli.registry import BUILTIN_METHOD_CODES, method_codes
@@ -230,19 +230,20 @@ def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, in
     it is refused when it has rows past the input's end, and gets a warning
     (:class:`CondtrackWarning`) when it has no row, ends before it or has visible positions outside its frame.
     """
-    ours = f"{info.input} has {info.width}x{info.height} px, {info.n_frames} frames"
+    ours = f"{info.input} has {info.width}x{info.height} px, {counted(info.n_frames, 'frame')}"
     if "width" in meta:
         theirs = (int(meta["width"]), int(meta["height"]), int(meta["n_frames"]))
         if theirs != (info.width, info.height, info.n_frames):
             raise CondtrackError(
-                f"{tracks_path} was tracked on {theirs[0]}x{theirs[1]} px, {theirs[2]} frames, but {ours}"
+                f"{tracks_path} was tracked on {theirs[0]}x{theirs[1]} px, {counted(theirs[2], 'frame')}, but {ours}"
             )
         return tracks
     extra = info.n_frames - tracks.xy.shape[1]
     if extra < 0:
         raise CondtrackError(f"{tracks_path} has rows up to frame {tracks.xy.shape[1] - 1}, but {ours}")
     if not tracks.xy.shape[1]:
-        warn(f"{tracks_path} holds no track row (a header only): no point to show on {info.input}")
+        empty = "no track (0 frames)" if is_hdf5(tracks_path) else "no track row (a header only)"
+        warn(f"{tracks_path} holds {empty}: no point to show on {info.input}")
     elif extra:
         warn(f"{tracks_path} has rows up to frame {tracks.xy.shape[1] - 1}, but {ours}: was it tracked on another input?")
     shown = tracks.xy[tracks.visible]
