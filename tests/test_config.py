@@ -133,3 +133,14 @@ def test_a_section_given_as_a_false_value_is_refused_like_any_other_non_mapping(
         load_config(tmp_path / "c.yaml")
     (tmp_path / "c.yaml").write_text("filter:\n  stk:\noutput:\nmotion:\n")
     assert load_config(tmp_path / "c.yaml") == load_config(None)
+
+
+@pytest.mark.parametrize("sigma", ["0.3", "1e-200"])
+def test_a_weight_sigma_under_half_a_pixel_is_refused(sigma):
+    """measure.weight_sigma=1e-200 ran with numpy's 'overflow encountered in square' warning, and every sigma well
+    under a pixel weighed the centre pixel alone (zero_mean: every cost 0, 3 % of the occlusion sample's rows
+    visible); the bound is 0.5 px."""
+    with pytest.raises(CondtrackError, match=rf"^config key 'measure.weight_sigma': Input should be greater than or "
+                                             rf"equal to 0.5 \(got {sigma}\)$"):
+        load_config(overrides=[f"measure.weight_sigma={sigma}"])
+    assert load_config(overrides=["measure.weight_sigma=0.5"]).stages["measure"].settings.weight_sigma == 0.5

@@ -51,9 +51,9 @@ class SSDSettings(StageSettings):
     )
     r_floor: float = Field(1 / 12, gt=0, description="variance added to R_k on each axis (px^2): a grid cell's spread")
     weight_sigma: float | None = Field(
-        None, gt=0, le=64,
-        description="std of the Gaussian weights of the patch's pixels in the matching cost, around its centre (px); "
-                    "null: every pixel alike (the paper's eq. 6)",
+        None, ge=0.5, le=64,
+        description="std of the Gaussian weights of the patch's pixels in the matching cost, around its centre (px, "
+                    "at least 0.5: less weighs the centre pixel alone); null: every pixel alike (the paper's eq. 6)",
     )
 
     @field_validator("search_max")
