@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Callable
 if TYPE_CHECKING:  # the settings models' base; pydantic itself loads with the first stage
     from pydantic import BaseModel
 
-from condtrack_cli.errors import plain
+from condtrack_cli.errors import plain, warn
 
 #: The kinds of stage, in data-flow order.
 KINDS = ("frames", "detect", "motion", "measure", "filter", "output")
@@ -114,15 +114,23 @@ def register(kind: str, name: str, settings: type[BaseModel], summary: str = "")
 
 
 def load_stages() -> None:
-    """Load the entry points of ``condtrack.stages`` (once); the built-ins are registered already."""
+    """Load the entry points of ``condtrack.stages`` (once); the built-ins are registered already.
+
+    An entry point that fails (a plugin's module missing or raising) is warned and skipped: the other stages work,
+    and a config naming one of its stages is refused as naming an unknown stage.
+    """
     global _loaded
     if _loaded:
         return
     _loaded = True
     for entry in metadata.entry_points(group=ENTRY_POINT_GROUP):
-        loaded = entry.load()
-        if callable(loaded):
-            loaded()
+        try:
+            loaded = entry.load()
+            if callable(loaded):
+                loaded()
+        except Exception as error:
+            warn(f"{ENTRY_POINT_GROUP} entry point '{entry.name} = {entry.value}' not loaded, its stages left out "
+                 f"({type(error).__name__}: {error})")
 
 
 def reload_entry_points() -> None:

@@ -162,6 +162,25 @@ def test_third_party_stage_registers_through_entry_points(tmp_path, monkeypatch)
         registry.reload_entry_points()
 
 
+def test_a_broken_entry_point_is_warned_and_the_other_stages_work(tmp_path, monkeypatch):
+    """An entry point naming a module that is not installed ended every command (stages, info, track) in a
+    ModuleNotFoundError traceback."""
+    info = tmp_path / "broken_plugin-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: broken-plugin\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[condtrack.stages]\nbroken = no_such_condtrack_plugin\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry.reload_entry_points()
+    try:
+        result = CliRunner().invoke(cli, ["stages"])
+        assert result.exit_code == 0 and "  clf " in result.output, result.output
+        assert result.stderr == ("warning: condtrack.stages entry point 'broken = no_such_condtrack_plugin' not "
+                                 "loaded, its stages left out (ModuleNotFoundError: No module named "
+                                 "'no_such_condtrack_plugin')\n")
+    finally:
+        registry.reload_entry_points()
+
+
 @pytest.mark.parametrize("sample, floor", [("camera_motion", 0.90), ("occlusion", 0.75)])
 def test_stk_accuracy_on_the_samples(tmp_path, sample, floor):
     """STK's <delta_avg on the shipped samples' exact ground truth stays above a floor (measured 0.958 / 0.807)."""
