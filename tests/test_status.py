@@ -85,6 +85,16 @@ def test_the_redo_keeps_the_output_names_and_says_what_it_cannot_know(tmp_path):
     assert shlex.split(result.stdout.splitlines()[-3])[2:4] == ["data/x/frames", "data/y/frames"]
 
 
+def test_a_redo_that_cannot_give_the_batch_s_output_name_says_so(tmp_path):
+    """A shard's failed input named x_frames.h5 from the whole list (x/frames beside y/frames of another shard): the
+    redo, knowing x alone, would write frames.h5, and nothing said so."""
+    record(tmp_path, "x", "failed", 1.0, "data/x/frames: no image files", cwd=str(tmp_path))
+    assert status(str(tmp_path)).stdout.splitlines()[-2:] == [
+        f"  condtrack track {tmp_path}/data/x/frames --out-dir {tmp_path} -m stk --seed 0 --skip-existing",
+        "  # -m stk: the outputs were named from a longer input list than the manifest holds (another shard's, or "
+        "inputs not run yet); redo with that list and --skip-existing"]
+
+
 def test_all_done_exits_0_and_a_folder_without_manifest_is_an_error(tmp_path):
     record(tmp_path, "a", "ok", 1.0)
     (tmp_path / "a_frames.h5").write_bytes(b"")

@@ -117,10 +117,13 @@ def _redo(inputs: list[InputStatus], latest: list[dict], records: list[dict]) ->
             groups.setdefault((item.method, item.seed, Path(record["output"]).suffix), []).append((item, record))
     commands, notes = [], []
     for (method, seed, suffix), todo in groups.items():
-        names = [item.input for item, _ in todo]
+        names, stems = [item.input for item, _ in todo], [Path(record["output"]).stem for _, record in todo]
         skip = []
-        if output_names(names) != [Path(record["output"]).stem for _, record in todo]:
+        if output_names(names) != stems:
             names, skip = [item.input for item in inputs], ["--skip-existing"]
+            if [output_names(names)[names.index(item.input)] for item, _ in todo] != stems:
+                notes.append(f"-m {method}: the outputs were named from a longer input list than the manifest holds "
+                             "(another shard's, or inputs not run yet); redo with that list and --skip-existing")
         first = todo[0][1]
         options = ["--out-dir", batch_path(first, str(Path(first["output"]).parent)), "-m", method, "--seed", str(seed)]
         options += ["--format", "csv"] if suffix == ".csv" else []
