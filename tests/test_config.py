@@ -7,7 +7,7 @@ import re
 import pytest
 
 from condtrack_cli.config import default_yaml, load_config
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, CondtrackWarning
 
 from conftest import REPO
 
@@ -144,3 +144,14 @@ def test_a_weight_sigma_under_half_a_pixel_is_refused(sigma):
                                              rf"equal to 0.5 \(got {sigma}\)$"):
         load_config(overrides=[f"measure.weight_sigma={sigma}"])
     assert load_config(overrides=["measure.weight_sigma=0.5"]).stages["measure"].settings.weight_sigma == 0.5
+
+
+def test_mdr_runs_no_measure_stage_so_its_keys_are_warned_and_its_window_need_not_fit():
+    """-m mdr (the motion alone) took --set measure.* without a word though nothing changed (the tracks the same bit
+    for bit), and refused a frame smaller than measure.template, a window it never reads."""
+    with pytest.warns(CondtrackWarning, match=r"^--set measure.template=63 has no effect: method 'mdr' runs no "
+                                              r"measure stage$"):
+        config = load_config(overrides=["measure.template=63"], method="mdr")
+    config.check_fits_frame(40, 40, detecting=False)
+    with pytest.raises(CondtrackError, match="config key 'measure.template': a window of 63 px does not fit"):
+        load_config(overrides=["measure.template=63"], method="clf").check_fits_frame(40, 40, detecting=False)

@@ -107,7 +107,9 @@ class CLFSettings(MeasuredFilterSettings):
 
 
 class MDRSettings(InitialStateSettings):
-    """MDR's settings: the initial position std and which motion moves the points."""
+    """MDR's settings: the initial position std and which motion moves the points (no measurement stage)."""
+
+    stage_kinds = ("motion",)
 
     dynamics: Literal["global", "local"] = Field(
         "global",
