@@ -102,6 +102,11 @@ class Config:
         if min(width, height) < smallest:  # no setting makes it fit: the frame is the problem, not a key
             raise CondtrackError(f"{where}: the {width}x{height} frame is too small for tracking "
                                  f"(at least {smallest}x{smallest} px)")
+        for kind in read & self.stages.keys():  # a stage that cannot run on so small a frame whatever its windows
+            least = self.stages[kind].settings.least_longer_side()
+            if max(width, height) < least:
+                raise CondtrackError(f"{where}: the {width}x{height} frame is too small for {kind} "
+                                     f"'{self.stages[kind].name}' (at least {least} px on one side)")
         oversized = [(key, side) for key, side, _ in windows if side > min(width, height)]
         if oversized:  # every one named at once: fixing them one run at a time is what a user should not have to do
             (key, side), others = oversized[0], oversized[1:]

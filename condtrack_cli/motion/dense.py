@@ -117,9 +117,17 @@ SELECT_MIN_DIFFERENCE = 2.0
 #: ``select``: the raw field's DIS patch stride (px of its finest level, on the half-resolution frames).
 SELECT_RAW_STRIDE = 3
 
+#: OpenCV's DIS computes no field on a frame under this many px on both sides ("The input image must have either
+#: width or height >= 12").
+DIS_LEAST_SIDE = 12
+
 
 class DisMotionSettings(StageSettings):
     frame_windows = ("local_window", "misfit_window")
+
+    def least_longer_side(self) -> int:
+        """OpenCV's DIS refuses frames under 12 px on both sides; ``select``'s raw field runs on half-size frames."""
+        return DIS_LEAST_SIDE * (2 if self.mean_normalization == "select" else 1)
     model: Literal["translation", "affine", "quadratic"] = Field(
         "quadratic", description="parametric model of the global motion (quadratic: the 8-parameter plane-perspective model)"
     )
