@@ -131,6 +131,17 @@ def test_bad_config_and_output_are_refused_before_work(shifted_folder, tmp_path)
     assert not list(tmp_path.glob("a.*"))
 
 
+def _installed_plugin(tmp_path, monkeypatch, name: str, entry: str) -> None:
+    """A distribution ``name`` 1.0 installed on sys.path (tmp_path) whose ``condtrack.stages`` entry point is
+    ``entry`` (``"key = module"``), and the registry's entry points read again."""
+    info = tmp_path / f"{name.replace('-', '_')}-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {name}\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(f"[condtrack.stages]\n{entry}\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    registry.reload_entry_points()
+
+
 def test_third_party_stage_registers_through_entry_points(tmp_path, monkeypatch):
     package = tmp_path / "thirdparty_detect.py"
     package.write_text(textwrap.dedent('''
@@ -147,12 +158,7 @@ def test_third_party_stage_registers_through_entry_points(tmp_path, monkeypatch)
                               settings.step:gray.shape[1] - settings.step:settings.step]
             return np.column_stack([xs.ravel(), ys.ravel()]).astype(float)
     '''))
-    info = tmp_path / "thirdparty_detect-1.0.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: thirdparty-detect\nVersion: 1.0\n")
-    (info / "entry_points.txt").write_text("[condtrack.stages]\ngrid = thirdparty_detect\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    registry.reload_entry_points()
+    _installed_plugin(tmp_path, monkeypatch, "thirdparty-detect", "grid = thirdparty_detect")
     try:
         assert "grid" in registry.names("detect")
         result = CliRunner().invoke(cli, ["stages"])
@@ -165,12 +171,7 @@ def test_third_party_stage_registers_through_entry_points(tmp_path, monkeypatch)
 def test_a_broken_entry_point_is_warned_and_the_other_stages_work(tmp_path, monkeypatch):
     """An entry point naming a module that is not installed ended every command (stages, info, track) in a
     ModuleNotFoundError traceback."""
-    info = tmp_path / "broken_plugin-1.0.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: broken-plugin\nVersion: 1.0\n")
-    (info / "entry_points.txt").write_text("[condtrack.stages]\nbroken = no_such_condtrack_plugin\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    registry.reload_entry_points()
+    _installed_plugin(tmp_path, monkeypatch, "broken-plugin", "broken = no_such_condtrack_plugin")
     try:
         result = CliRunner().invoke(cli, ["stages"])
         assert result.exit_code == 0 and "  clf " in result.output, result.output
