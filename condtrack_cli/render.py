@@ -363,7 +363,8 @@ def render_overlay(tracks: Tracks, frames: Iterable[np.ndarray], out_path: str |
 
 
 def sheet_frames(n_frames: int, n: int) -> np.ndarray:
-    """(min(n, n_frames),) int64 indices of ``n`` evenly spaced frames, first and last included."""
+    """(min(n, n_frames),) int64 indices of ``n`` evenly spaced frames, first and last included (n = 1: the first
+    alone)."""
     return np.rint(np.linspace(0, n_frames - 1, min(n, n_frames))).astype(np.int64)
 
 

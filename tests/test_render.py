@@ -161,6 +161,7 @@ def test_png_folder_when_no_codec_opens(frames_folder, tmp_path, monkeypatch):
 def test_contact_sheet_layout(frames_folder, tmp_path):
     assert sheet_frames(8, 6).tolist() == [0, 1, 3, 4, 6, 7]
     assert sheet_frames(3, 6).tolist() == [0, 1, 2]
+    assert sheet_frames(30, 1).tolist() == [0] and sheet_frames(30, 2).tolist() == [0, 29]  # as render --help says
     out = render_contact_sheet(make_tracks(), raw_frames(frames_folder), tmp_path / "sheet.png", n=5, columns=3)
     assert cv2.imread(str(out)).shape == (2 * HEIGHT, 3 * WIDTH, 3)
     small = render_contact_sheet(make_tracks(), raw_frames(frames_folder), tmp_path / "two.png", n=2, columns=3)

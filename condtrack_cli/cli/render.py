@@ -20,7 +20,7 @@ from condtrack_cli.cli.options import checked, overlay_options, overlay_style, p
 @click.option("--trail", type=click.IntRange(min=1), default=10, show_default=True,
               help="Positions joined by each point's trail (1: no trail).")
 @click.option("--sheet-frames", type=click.IntRange(min=1), default=6, show_default=True,
-              help="Frames on the contact sheet, evenly spaced, first and last included.")
+              help="Frames on the contact sheet, evenly spaced, first and last included (1: the first alone).")
 @overlay_options
 def render_command(tracks_path: str, input_path: str, output_path: str, sheet_path: str | None,
                    trail: int, sheet_frames: int, overlay_points: int | None, ellipses: str | None,
