@@ -250,6 +250,8 @@ def track(
         raise InvalidArgument(f"untrackable: {plain(untrackable)} is not one of {', '.join(POLICIES)}")
     if not isinstance(forward_only, bool):
         raise InvalidArgumentType(f"forward_only: expected True or False, got {type(forward_only).__name__}")
+    if method is not None and not isinstance(method, str):
+        raise InvalidArgumentType(f"method: expected a method name (str), got {type(method).__name__}")
     options = {name: override for name, override, given in (
         ("untrackable", f"detect.untrackable={untrackable}", untrackable is not None),
         ("max_std", f"output.max_std={yaml_scalar(python_value(max_std))}", max_std is not None),

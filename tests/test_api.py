@@ -154,6 +154,16 @@ def test_bad_arguments_raise_condtrack_errors_worded_as_the_command_line(keyword
         assert message.replace("'", "") in done.stderr.replace("'", ""), (message, done.stderr)
 
 
+def test_a_method_that_is_not_a_name_is_an_invalid_argument_type():
+    """ct.track(src, method=3) raised a plain CondtrackError ("unknown method 3") where every other argument of another
+    type raises InvalidArgumentType (a TypeError); an unknown name is still refused naming the methods."""
+    with pytest.raises(ct.CondtrackError, match="^method: expected a method name") as raised:
+        ct.track(str(SAMPLE), method=3)
+    assert isinstance(raised.value, TypeError)
+    with pytest.raises(ct.CondtrackError, match="unknown method 'kalman'"):
+        ct.track(str(SAMPLE), method="kalman")
+
+
 def test_a_path_argument_of_another_type_or_a_folder_is_a_condtrack_error(tmp_path):
     """ct.read_tracks(5) and t.to_csv(None) raised pathlib's bare TypeError, ct.track(None) said 'None: no such file
     or folder', ct.read_tracks(folder) 'no such file'; now InvalidArgumentType naming the argument, and 'not a regular
