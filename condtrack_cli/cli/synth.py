@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 from click.core import ParameterSource
 
+from condtrack_cli import MAX_SEED
 from condtrack_cli.cli.options import FiniteFloatRange
 from condtrack_cli.errors import CondtrackError
 
@@ -31,7 +32,7 @@ class _Size(click.ParamType):
 @click.option("--scene", help="Scene to write into OUT: camera_motion, occlusion, ring, illumination, fast, jumps, card, nonrigid.")
 @click.option("--samples", is_flag=True,
               help="Write the shipped sample sequences under OUT instead (make samples); takes --force only.")
-@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--seed", type=click.IntRange(min=0, max=MAX_SEED), default=0, show_default=True)
 @click.option("--size", type=_Size(), default="320x240", show_default=True, help="WIDTHxHEIGHT in pixels, 64 to 4096 each way.")
 @click.option("--frames", "n_frames", type=click.IntRange(min=2), help="Number of frames (the scene's default otherwise).")
 @click.option("--noise", type=FiniteFloatRange(min=0), help="Noise standard deviation (grey levels).")
