@@ -282,13 +282,13 @@ def test_synth_refuses_an_existing_folder_without_force(tmp_path):
     assert "--force" in CliRunner().invoke(cli, ["synth", "--help"]).output
 
 
-def test_synth_takes_the_seeds_track_takes():
+def test_synth_takes_the_seeds_track_takes(tmp_path):
     """synth --seed took 99999999999999999999999 while track --seed stops at 2^63 - 1 (ct.MAX_SEED); both now take
     0 .. MAX_SEED."""
     from condtrack_cli import MAX_SEED
 
-    result = CliRunner().invoke(cli, ["synth", "s", "--scene", "ring", "--seed", str(MAX_SEED + 1)])
-    assert result.exit_code == 2 and f"0<=x<={MAX_SEED}" in result.output
+    result = CliRunner().invoke(cli, ["synth", str(tmp_path / "s"), "--scene", "ring", "--seed", str(MAX_SEED + 1)])
+    assert result.exit_code == 2 and f"0<=x<={MAX_SEED}" in result.output and not (tmp_path / "s").exists()
 
 
 def test_track_help_says_quiet_still_prints_a_batchs_failed_inputs():
