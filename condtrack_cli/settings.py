@@ -49,12 +49,12 @@ class StageSettings(BaseModel):
     filter_sections: ClassVar[tuple[str, ...]] = ()
     covariance: ClassVar[bool] = True
     stage_kinds: ClassVar[tuple[str, ...]] = ("motion", "measure")
+    unbounded_floats: ClassVar[tuple[str, ...]] = ()
+    odd_fields: ClassVar[tuple[str, ...]] = ()
 
     def least_longer_side(self) -> int:
         """The shortest longer side (px) of a frame this stage can run on (1: any; OpenCV's DIS needs 12)."""
         return 1
-    unbounded_floats: ClassVar[tuple[str, ...]] = ()
-    odd_fields: ClassVar[tuple[str, ...]] = ()
 
     @field_validator("*", mode="after")
     @classmethod

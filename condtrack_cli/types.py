@@ -176,21 +176,22 @@ class Tracks(ArrayFields):
         """(P, F) bool: rows that exist in the long CSV."""
         return np.isfinite(self.xy).all(axis=-1)
 
-    def point_methods(self) -> list[str]:
-        """(P,) the method that produced most of each point's frames."""
+    def _main_codes(self) -> tuple[tuple[str, ...], np.ndarray]:
+        """The method names (``registry.method_codes()`` and "" for no state) and (P,) the index into them of the
+        method that produced most of each point's frames."""
         from condtrack_cli.registry import method_codes
 
         codes = method_codes()
         counts = (self.method[:, :, None] == np.arange(len(codes))).sum(axis=1)  # (P, M)
-        names = np.array(codes + ("",), dtype=object)
-        best = np.where(counts.any(axis=1), counts.argmax(axis=1), len(codes))
-        return list(names[best])
+        return codes + ("",), np.where(counts.any(axis=1), counts.argmax(axis=1), len(codes))
+
+    def point_methods(self) -> list[str]:
+        """(P,) the method that produced most of each point's frames."""
+        names, best = self._main_codes()
+        return list(np.array(names, dtype=object)[best])
 
     def method_split(self) -> str:
         """How many points each method produced most of, in code order: ``"clf 5, cnlf 1"`` ("no state" last)."""
-        from condtrack_cli.registry import method_codes
-
-        per_method = dict.fromkeys(method_codes() + ("",), 0)
-        for name in self.point_methods():
-            per_method[name] += 1
-        return ", ".join(f"{name or 'no state'} {count}" for name, count in per_method.items() if count)
+        names, best = self._main_codes()
+        per_method = np.bincount(best, minlength=len(names))
+        return ", ".join(f"{name or 'no state'} {count}" for name, count in zip(names, per_method) if count)

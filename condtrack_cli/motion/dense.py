@@ -124,10 +124,6 @@ DIS_LEAST_SIDE = 12
 
 class DisMotionSettings(StageSettings):
     frame_windows = ("local_window", "misfit_window")
-
-    def least_longer_side(self) -> int:
-        """OpenCV's DIS refuses frames under 12 px on both sides; ``select``'s raw field runs on half-size frames."""
-        return DIS_LEAST_SIDE * (2 if self.mean_normalization == "select" else 1)
     model: Literal["translation", "affine", "quadratic"] = Field(
         "quadratic", description="parametric model of the global motion (quadratic: the 8-parameter plane-perspective model)"
     )
@@ -169,6 +165,11 @@ class DisMotionSettings(StageSettings):
     local_window: int = Field(
         9, ge=3, description="side of the window over which the field's spread gives Q_k of the local motion (px)"
     )
+
+    def least_longer_side(self) -> int:
+        """OpenCV's DIS refuses frames under ``DIS_LEAST_SIDE`` px on both sides; ``select``'s raw field runs on
+        half-size frames."""
+        return DIS_LEAST_SIDE * (2 if self.mean_normalization == "select" else 1)
 
 
 class DenseFlow:
