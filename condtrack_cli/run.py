@@ -15,7 +15,7 @@ from pathlib import Path
 from condtrack_cli.api import track_sequence
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError, write_error
-from condtrack_cli.io.atomic import output_folder
+from condtrack_cli.io.atomic import output_file
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.write import csv_text, write_tracks
 from condtrack_cli.streams import drop
@@ -42,9 +42,9 @@ class RunSummary:
 
 
 def check_output_path(path: Path) -> None:
-    """Refuse an output path before any work: unknown extension, missing or read-only folder."""
+    """Refuse an output path before any work: unknown extension, a folder, missing or read-only folder."""
     track_format(path, "output")
-    _, folder = output_folder(path)
+    _, folder = output_file(path)
     if not os.access(folder, os.W_OK | os.X_OK):
         raise CondtrackError(f"{path}: the output folder '{folder}' is not writable")
 

@@ -300,3 +300,16 @@ def test_a_csv_read_back_and_written_as_hdf5_can_be_drawn_on_its_frames(tmp_path
                            "-o", str(tmp_path / "o.mp4"), "--contact-sheet", str(tmp_path / "sheet.png")], capture_output=True, text=True, cwd=tmp_path)
     assert done.returncode == 0, done.stderr
     assert (tmp_path / "sheet.png").stat().st_size > 0
+
+
+def test_writing_tracks_onto_a_folder_is_refused_naming_it(tmp_path):
+    """t.to_csv("out.csv") with out.csv a folder wrote the whole file, then ended in the rename's IsADirectoryError
+    traceback; now a CondtrackError names the folder before anything is written, and nothing is left beside it."""
+    t = ct.track(str(SAMPLE), queries=np.array([[0, 120.0, 80.0]]), method="stk")
+    for name, write in (("out.csv", t.to_csv), ("out.h5", t.to_hdf5)):
+        (tmp_path / name).mkdir()
+        with pytest.raises(CondtrackError, match=rf"^{re.escape(str(tmp_path / name))}: is a folder; an output file "
+                                                 "cannot replace it$"):
+            write(tmp_path / name)
+        assert (tmp_path / name).is_dir() and not any((tmp_path / name).iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.csv", "out.h5"]

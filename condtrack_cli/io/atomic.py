@@ -65,10 +65,19 @@ def output_folder(path: str | Path) -> tuple[Path, Path]:
     return path, folder
 
 
+def output_file(path: str | Path) -> tuple[Path, Path]:
+    """:func:`output_folder` for an output file: also a CondtrackError where ``path`` is a folder, which the file
+    could not replace (said before it is written, not by the rename at its end)."""
+    path, folder = output_folder(path)
+    if path.is_dir():
+        raise CondtrackError(f"{path}: is a folder; an output file cannot replace it")
+    return path, folder
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path in ``path``'s folder; rename it to ``path`` on success, delete it otherwise."""
-    path, folder = output_folder(path)
+    path, folder = output_file(path)
     # Held from before the file exists: a signal between its creation and the clean-up's start left it behind.
     with held_signals() as held:  # a stop signal during the write: the file is discarded, then the signal acts
         try:
@@ -125,13 +134,13 @@ def publish(built: Path, path: str | Path) -> None:
 
 
 def check_writable(path: str | Path) -> None:
-    """Refuse ``path`` before any work when its folder is missing or no file can be created in it.
+    """Refuse ``path`` before any work when it is a folder, or its folder is missing or no file can be created in it.
 
     Tried, not guessed from permissions (root passes every permission check,
     and a read-only file system fails none): a temporary file is created and
     removed.
     """
-    path, folder = output_folder(path)
+    path, folder = output_file(path)
     try:
         with tempfile.TemporaryFile(dir=folder):
             pass
