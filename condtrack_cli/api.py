@@ -281,7 +281,7 @@ def read_tracks(path: str | Path) -> Tracks:
     result = replace(result, extras=io_read.stored_extras(Path(path), result))
     info = types.SequenceInfo(
         input=str(meta.get("input", "")), width=int(meta.get("width", 0)), height=int(meta.get("height", 0)),
-        n_frames=int(meta["n_frames"]), fps=float(meta.get("fps", 0.0)),
+        n_frames=io_read.frame_count(result, meta), fps=float(meta.get("fps", 0.0)),
     )
     config = resolve(yaml.safe_load(meta["config"])) if "config" in meta else None
     attributes = {key: python_value(meta[key]) for key in RUN_ATTRIBUTES if key in meta}  # h5py's np.int64: int

@@ -16,7 +16,7 @@ from condtrack_cli import COORDINATES, SCHEMA_VERSION
 from condtrack_cli.cli import cli
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.io.interface import OutputSettings
-from condtrack_cli.io.read import read_tracks
+from condtrack_cli.io.read import matched_to_input, read_tracks
 from condtrack_cli.io.compare import compare_tracks
 from condtrack_cli.io.write import CSV_COLUMNS, FLOAT_FORMATS, csv_text, write_tracks
 from condtrack_cli.registry import BUILTIN_METHOD_CODES
@@ -239,6 +239,50 @@ def test_an_hdf5_whose_shapes_depart_from_the_schema_is_refused(tmp_path):
         f["tracks/visible"] = np.ones((P, F + 1), bool)
     with pytest.raises(CondtrackError, match=r"damaged or incomplete .*visible has shape \(3, 5\), expected \(3, 4\)"):
         read_tracks(path)
+
+
+@pytest.mark.parametrize("key, value, said", [
+    ("n_frames", "abc", "root attribute 'n_frames' is 'abc', not a whole number of frames"),
+    ("n_frames", -1, "root attribute 'n_frames' is -1, not a whole number of frames"),
+    ("width", -5, "root attribute 'width' is -5, not a whole number of pixels above 0"),
+    ("height", None, "root attribute 'height' is missing beside the other"),
+    ("fps", float("nan"), "root attribute 'fps' is nan, not a finite number >= 0"),
+    ("config", 5, "root attribute 'config' is 5, not a string"),
+])
+def test_an_hdf5_whose_root_attributes_depart_from_the_schema_is_refused(tmp_path, key, value, said):
+    """A file whose n_frames was a string ended render and ct.read_tracks in int()'s ValueError, a config that was no
+    string ended info in an AttributeError; each is now refused naming the attribute, as every other damaged file is
+    (None: the attribute deleted)."""
+    import condtrack_cli as ct
+
+    path = tmp_path / "t.h5"
+    write_small(path)
+    with h5py.File(path, "r+") as f:
+        if value is None:
+            del f.attrs[key]
+        else:
+            f.attrs[key] = value
+    message = rf"^{re.escape(str(path))}: damaged or incomplete condtrack HDF5 file \({re.escape(said)}\)$"
+    with pytest.raises(CondtrackError, match=message):  # what info, compare, eval and render read it with
+        read_tracks(path)
+    with pytest.raises(CondtrackError, match=message):
+        ct.read_tracks(path)
+
+
+def test_an_hdf5_without_n_frames_has_the_frames_of_its_tracks(tmp_path):
+    """ct.read_tracks and render of a file written without the n_frames attribute (by hand, as eval reads one) ended in
+    a KeyError traceback; its frame count is now that of /tracks/xy."""
+    import condtrack_cli as ct
+
+    path = tmp_path / "t.h5"
+    write_small(path)
+    with h5py.File(path, "r+") as f:
+        del f.attrs["n_frames"]
+    assert ct.read_tracks(path).info.n_frames == F
+    _, meta = read_tracks(path)
+    assert matched_to_input(small_tracks(), meta, path, SequenceInfo("frames/", 64, 48, F, 0.0)) == small_tracks()
+    with pytest.raises(CondtrackError, match=r"t.h5 was tracked on 64x48 px, 4 frames, but frames/ has 64x48 px, 5 "):
+        matched_to_input(small_tracks(), meta, path, SequenceInfo("frames/", 64, 48, F + 1, 0.0))
 
 
 def test_optional_datasets_of_auto_match_the_doc(tmp_path):

@@ -15,6 +15,7 @@ only by the functions that open an HDF5 file (start-up time, issue 13).
 from __future__ import annotations
 
 import contextlib
+import numbers
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -154,6 +155,34 @@ def _check_layout(tracks: Tracks) -> None:
         raise ValueError(f"method_code outside -1 .. {len(method_codes()) - 1}")
 
 
+def _check_attributes(meta: dict[str, Any]) -> None:
+    """ValueError when a root attribute that the readers use departs from docs/schema.md: ``n_frames`` a whole number
+    >= 0, ``width`` and ``height`` (both or neither) whole numbers above 0, ``fps`` a finite number >= 0, ``input``
+    and ``config`` strings. Each may be absent (a file written by hand), ``n_frames`` then read as the frames of
+    /tracks/xy (:func:`frame_count`)."""
+    def whole(value: Any) -> bool:
+        return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
+
+    if "n_frames" in meta and not (whole(meta["n_frames"]) and meta["n_frames"] >= 0):
+        raise ValueError(f"root attribute 'n_frames' is {plain(meta['n_frames'])}, not a whole number of frames")
+    if ("width" in meta) != ("height" in meta):
+        raise ValueError(f"root attribute '{'height' if 'width' in meta else 'width'}' is missing beside the other")
+    for key in ("width", "height"):
+        if key in meta and not (whole(meta[key]) and meta[key] > 0):
+            raise ValueError(f"root attribute '{key}' is {plain(meta[key])}, not a whole number of pixels above 0")
+    fps = meta.get("fps", 0.0)
+    if not (isinstance(fps, numbers.Real) and not isinstance(fps, (bool, np.bool_)) and 0 <= fps < np.inf):
+        raise ValueError(f"root attribute 'fps' is {plain(fps)}, not a finite number >= 0")
+    for key in ("input", "config"):
+        if key in meta and not isinstance(meta[key], str):
+            raise ValueError(f"root attribute '{key}' is {plain(meta[key])}, not a string")
+
+
+def frame_count(tracks: Tracks, meta: dict[str, Any]) -> int:
+    """F of a track file read by :func:`read_tracks`: its ``n_frames`` attribute, else the frames of its tracks."""
+    return int(meta.get("n_frames", tracks.xy.shape[1]))
+
+
 def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
     import h5py
 
@@ -187,6 +216,7 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
             tracks = Tracks(queries, xy, t["cov"][()], dof, t["visible"][()].astype(bool),
                             file_codes[t["method_code"][()]], z, R, trackability=scores)
             _check_layout(tracks)
+            _check_attributes(meta)
         except (KeyError, OSError, RuntimeError, TypeError, ValueError, IndexError) as error:
             # h5py reports damaged metadata as OSError or RuntimeError
             raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file ({error})") from None
@@ -232,7 +262,7 @@ def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, in
     """
     ours = f"{info.input} has {info.width}x{info.height} px, {counted(info.n_frames, 'frame')}"
     if "width" in meta:
-        theirs = (int(meta["width"]), int(meta["height"]), int(meta["n_frames"]))
+        theirs = (int(meta["width"]), int(meta["height"]), frame_count(tracks, meta))
         if theirs != (info.width, info.height, info.n_frames):
             raise CondtrackError(
                 f"{tracks_path} was tracked on {theirs[0]}x{theirs[1]} px, {counted(theirs[2], 'frame')}, but {ours}"
