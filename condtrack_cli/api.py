@@ -283,6 +283,22 @@ def read_tracks(path: str | Path) -> Tracks:
         input=str(meta.get("input", "")), width=int(meta.get("width", 0)), height=int(meta.get("height", 0)),
         n_frames=io_read.frame_count(result, meta), fps=float(meta.get("fps", 0.0)),
     )
-    config = resolve(yaml.safe_load(meta["config"])) if "config" in meta else None
+    config = _file_config(path, meta["config"]) if "config" in meta else None
     attributes = {key: python_value(meta[key]) for key in RUN_ATTRIBUTES if key in meta}  # h5py's np.int64: int
     return Tracks(result, info, config, attributes)
+
+
+def _file_config(path: str | Path, text: str) -> Config:
+    """The resolved config of a track file's ``config`` attribute; CondtrackError naming the file when it is none."""
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError:
+        raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file (root attribute 'config' is not "
+                             "valid YAML)") from None
+    if not isinstance(raw, dict):
+        raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file (root attribute 'config' is not a "
+                             "mapping of sections)")
+    try:
+        return resolve(raw)
+    except CondtrackError as error:
+        raise CondtrackError(f"{path}: root attribute 'config': {error}") from None

@@ -285,6 +285,22 @@ def test_an_hdf5_without_n_frames_has_the_frames_of_its_tracks(tmp_path):
         matched_to_input(small_tracks(), meta, path, SequenceInfo("frames/", 64, 48, F + 1, 0.0))
 
 
+def test_a_config_attribute_that_is_no_config_is_refused_naming_the_file(tmp_path):
+    """ct.read_tracks of a file whose config attribute was not YAML ended in PyYAML's ParserError traceback, and one
+    naming an unknown key said "config key ..." without naming the file; both now name the file."""
+    import condtrack_cli as ct
+
+    path = tmp_path / "t.h5"
+    damaged = "damaged or incomplete condtrack HDF5 file (root attribute 'config' is"
+    for config, said in (("a: [1", f"{damaged} not valid YAML)"), ("", f"{damaged} not a mapping of sections)"),
+                         ("measure:\n  templat: 11\n",
+                          "root attribute 'config': config key 'measure.templat': unknown key")):
+        write_tracks(small_tracks(), path, SequenceInfo("frames/", 64, 48, F, 0.0), {**TRACK_META, "config": config},
+                     OutputSettings())
+        with pytest.raises(CondtrackError, match=rf"^{re.escape(str(path))}: {re.escape(said)}"):
+            ct.read_tracks(path)
+
+
 def test_optional_datasets_of_auto_match_the_doc(tmp_path):
     """``auto`` with particles and segmentation stored writes exactly the documented optional datasets."""
     from conftest import SAMPLES
