@@ -14,11 +14,12 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import default_sigint
 
 from condtrack_cli.batch.manifest import MANIFEST
-from condtrack_cli.batch.plan import output_names, parse_shard, shard
+from condtrack_cli.batch.plan import _stored_run, output_names, parse_shard, shard
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.frames.synthetic import make_scene, write_scene
 
@@ -542,3 +543,20 @@ def test_a_batch_output_that_is_an_existing_folder_is_refused_before_work(clips,
         f"Error: the output of '{clips[0]}', {out_dir / 'clip000_frames.h5'}: a folder, which an output file cannot "
         "replace\n")
     assert [p.name for p in out_dir.iterdir()] == ["clip000_frames.h5"]
+
+
+@pytest.mark.parametrize("key, value", [("seed", "x"), ("n_frames", "abc"), ("seed", np.array([1, 2]))])
+def test_skip_existing_redoes_an_output_whose_attributes_cannot_be_read(tmp_path, key, value):
+    """--skip-existing over an output whose seed or n_frames attribute was no number (a hand-edited file, another
+    tool's) ended the batch in int()'s ValueError or TypeError traceback before any work; such an output is now one
+    it cannot trust, redone like a file that is no HDF5."""
+    import h5py
+
+    output = tmp_path / "c1.h5"
+    with h5py.File(output, "w") as f:
+        f.attrs.update({"config_hash": "0" * 64, "condtrack_version": "0.1.0", "seed": 0, "n_frames": 5})
+        f["tracks/point_id"] = np.arange(3)
+    assert _stored_run(output, [])["seed"] == 0
+    with h5py.File(output, "r+") as f:
+        f.attrs[key] = value
+    assert _stored_run(output, []) is None

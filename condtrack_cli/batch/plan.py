@@ -99,7 +99,7 @@ def _stored_run(output: Path, manifest: list[dict]) -> dict | None:
                     "frames": int(attrs.get("n_frames", 0)), "points": int(f["tracks/point_id"].shape[0]),
                     "input_fingerprint": last.get("input_fingerprint"),
                 }
-        except (OSError, KeyError):
+        except (OSError, KeyError, TypeError, ValueError):  # ValueError, TypeError: an attribute int() cannot read
             return None  # not a readable track file: redo it
     return last or None
 
