@@ -241,6 +241,20 @@ def test_an_hdf5_whose_shapes_depart_from_the_schema_is_refused(tmp_path):
         read_tracks(path)
 
 
+def test_an_hdf5_whose_positions_are_integers_is_refused(tmp_path):
+    """A file of whole-pixel positions (another tracker's, written in this layout) stored as integers was read, and
+    eval ended in numpy's 'cannot convert float NaN to integer' traceback; /tracks/xy is float64 (NaN: no state), so
+    such a file is now refused naming the dataset, as one of another shape is."""
+    path = tmp_path / "t.h5"
+    write_small(path)
+    with h5py.File(path, "r+") as f:
+        xy = np.nan_to_num(f["tracks/xy"][()])
+        del f["tracks/xy"]
+        f["tracks/xy"] = np.rint(xy).astype(np.int64)
+    with pytest.raises(CondtrackError, match=r"t.h5: damaged or incomplete .*\(xy holds int64 values, not floats\)$"):
+        read_tracks(path)
+
+
 @pytest.mark.parametrize("key, value, said", [
     ("n_frames", "abc", "root attribute 'n_frames' is 'abc', not a whole number of frames"),
     ("n_frames", -1, "root attribute 'n_frames' is -1, not a whole number of frames"),

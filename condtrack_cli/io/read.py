@@ -141,7 +141,7 @@ def _codes_of(path: Path, names: np.ndarray) -> np.ndarray:
 
 
 def _check_layout(tracks: Tracks) -> None:
-    """ValueError when arrays read from an HDF5 file depart from the schema's shapes or method codes."""
+    """ValueError when arrays read from an HDF5 file depart from the schema's shapes, float types or method codes."""
     p, f = len(tracks.queries), (tracks.xy.shape[1] if tracks.xy.ndim == 3 else -1)
     for name, array, shape in (
         ("xy", tracks.xy, (p, f, 2)), ("cov", tracks.cov, (p, f, 2, 2)), ("dof", tracks.dof, (p, f)),
@@ -151,6 +151,8 @@ def _check_layout(tracks: Tracks) -> None:
     ):
         if array.shape != shape:
             raise ValueError(f"{name} has shape {array.shape}, expected {shape}")
+        if name not in ("visible", "method_code") and array.dtype.kind != "f":  # no NaN (no state) in an integer
+            raise ValueError(f"{name} holds {array.dtype} values, not floats")
     if ((tracks.method < -1) | (tracks.method >= len(method_codes()))).any():
         raise ValueError(f"method_code outside -1 .. {len(method_codes()) - 1}")
 
@@ -203,7 +205,7 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
             queries_table = f["queries"][()]
             queries = Queries(t["point_id"][()], queries_table[:, 0].astype(np.int64), queries_table[:, 1:3])
             xy = t["xy"][()]
-            nan = np.full_like(xy, np.nan)
+            nan = np.full(xy.shape, np.nan)  # float whatever xy holds (an integer xy is refused below)
             z = f["measurements/z"][()] if "measurements" in f else nan
             R = f["measurements/R"][()] if "measurements" in f else np.full(xy.shape + (2,), np.nan)
             # the file's code table; without one, the built-in codes (docs/schema.md)
