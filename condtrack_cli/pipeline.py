@@ -162,11 +162,27 @@ def run_pass(
         with Prefetched(frames) as ahead:  # frame k+1 is decoded while frame k is tracked
             tracker, scores = _track_frames(ahead, info, config, queries, seed, on_frame, history)
         tracks = dataclasses.replace(tracker.finish(history), trackability=scores)
-    tracks = tracker.smooth(tracks) if config.smooth else tracks
+    tracks = query_rows_kept(tracks, tracker.smooth(tracks)) if config.smooth else tracks
     return dataclasses.replace(
         tracks, cov=symmetrize(np.require(tracks.cov, np.float64, "W")),  # copied if read-only
         visible=tracks.visible & info.contains(tracks.xy),  # a point that left the frame is not seen, wherever it is
     )
+
+
+def query_rows_kept(filtered: Tracks, smoothed: Tracks) -> Tracks:
+    """``smoothed`` with each point's query row as the forward pass ``filtered`` reports it: the query and its
+    covariance (the initial one, with a query's aperture offset where it fails the trackability test).
+
+    Smoothed or not, the query row is the user's query (docs/departures.md, "CNLF path estimate"). The smoothers
+    would move it by the later frames' evidence, and they read the filters' spread there, the filters' device
+    (``initial_std``), not what the error model reports: the CLF's RTS put negative variances on the query rows of
+    untrackable queries, and the CNLF's FFBSm dropped their aperture offset.
+    """
+    started = np.flatnonzero(filtered.queries.frame < filtered.xy.shape[1])  # a clip may end before a query
+    rows = (started, filtered.queries.frame[started])
+    xy, cov = smoothed.xy.copy(), smoothed.cov.copy()
+    xy[rows], cov[rows] = filtered.xy[rows], filtered.cov[rows]
+    return dataclasses.replace(smoothed, xy=xy, cov=cov)
 
 
 def frame_motions(images: Iterable[np.ndarray], prev: Frame, motion: MotionStages, local: bool,

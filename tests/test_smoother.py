@@ -16,6 +16,7 @@ from condtrack_cli.config import load_config
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.filters import kalman
 from condtrack_cli.filters.smoother import particle_smoother, rts
+from conftest import SAMPLES
 
 P, F = 6, 14
 
@@ -155,6 +156,27 @@ def test_smoothing_narrows_the_filters_covariance_and_keeps_the_error_models_exc
     trace = lambda c: np.trace(c, axis1=-2, axis2=-1)  # noqa: E731
     assert (trace(smoothed.cov) <= trace(filtered.cov) + 1e-12).all()
     assert (trace(smoothed.cov[:, 1:-1]) < trace(filtered.cov[:, 1:-1])).any()
+
+
+@pytest.mark.filterwarnings("ignore:.*queries are untrackable:condtrack_cli.errors.CondtrackWarning")
+@pytest.mark.parametrize("method", ["clf", "cnlf", "auto"])
+def test_smoothing_keeps_each_query_row_and_positive_covariances(method):
+    """Smoothed or not, a query row is the query with the forward pass's covariance, and every covariance is positive
+    semi-definite. The occlusion sample's flat top-left corner fails the trackability test, so those queries start
+    with a wide aperture offset: the CLF's RTS, which reads the filter's own spread there, put negative variances on
+    their query rows and moved them off the query; the CNLF's FFBSm dropped the offset. One query is mid-clip (a
+    backward pass)."""
+    queries = np.array([[0, 10.0, 10.0], [0, 160.0, 120.0], [12, 10.0, 10.0]])
+    config = {"filter": {"cnlf": {"particles": 30}}}
+    filtered = ct.track(SAMPLES / "occlusion", queries=queries, method=method, config=config)
+    smoothed = ct.track(SAMPLES / "occlusion", queries=queries, method=method,
+                        config={"filter": {**config["filter"], "smooth": True}})
+    rows = (np.arange(len(queries)), queries[:, 0].astype(int))
+    np.testing.assert_array_equal(smoothed.xy[rows], queries[:, 1:])
+    np.testing.assert_array_equal(smoothed.cov[rows], filtered.cov[rows])
+    assert np.trace(filtered.cov[rows][[0, 2]], axis1=1, axis2=2).min() > 1.0  # the aperture offset, not 2 x 0.5^2
+    finite = np.isfinite(smoothed.cov).all(axis=(-2, -1))
+    assert finite[rows].all() and (np.linalg.eigvalsh(smoothed.cov[finite]) >= 0).all()
 
 
 @pytest.mark.filterwarnings("ignore:.*queries are untrackable:condtrack_cli.errors.CondtrackWarning")  # incidental queries (issue 29)

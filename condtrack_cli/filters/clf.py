@@ -262,7 +262,9 @@ class CLFTracker(MDRTracker):
         if members is not None:
             linked[:, 1:] &= members[:, 1:] & members[:, :-1]
         sigma_post = self.transitions.stacked("sigma_post", n_frames)
-        filtered = np.where(np.isfinite(sigma_post), sigma_post, tracks.cov)  # the query frames: the initial covariance
+        # where the filter recorded none (query frames, frames on another filter): the reported covariance; a query
+        # row's smoothed value is not reported (``pipeline.query_rows_kept``)
+        filtered = np.where(np.isfinite(sigma_post), sigma_post, tracks.cov)
         xy, cov = rts(tracks.xy, filtered, x_pred, self.transitions.stacked("sigma_pred", n_frames),
                       self.transitions.stacked("A", n_frames), linked)
         return dataclasses.replace(tracks, xy=xy, cov=cov + error_excess(self.transitions.stacked("excess", n_frames)))
