@@ -26,7 +26,7 @@ import yaml
 from condtrack_cli import MAX_SEED, pipeline, registry, types
 from condtrack_cli.config import Config, load_config, resolve, yaml_scalar
 from condtrack_cli.detect.trackability import POLICIES, query_scores, screen_queries, trackability_settings
-from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain, python_value
+from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain, python_value, warn
 from condtrack_cli.io import read as io_read
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.interface import OutputSettings
@@ -266,7 +266,8 @@ def read_tracks(path: str | Path) -> Tracks:
 
     An HDF5 file gives back its sequence, config and run attributes, and its particles and segmentation when it
     holds them (``t.result.extras``); a CSV holds none of them (``config`` is None, ``info`` has the frame count
-    only) nor the measurements.
+    only) nor the measurements. A config this version does not take (another version's, with a key since renamed or
+    removed) is left out with a warning (``config`` None).
 
     >>> import numpy as np
     >>> import condtrack_cli as ct
@@ -288,8 +289,10 @@ def read_tracks(path: str | Path) -> Tracks:
     return Tracks(result, info, config, attributes)
 
 
-def _file_config(path: str | Path, text: str) -> Config:
-    """The resolved config of a track file's ``config`` attribute; CondtrackError naming the file when it is none."""
+def _file_config(path: str | Path, text: str) -> Config | None:
+    """The resolved config of a track file's ``config`` attribute; CondtrackError naming the file when it is no YAML
+    mapping; None, with a warning naming the file, when this version does not take it (a file of another version,
+    whose config has a key since renamed or removed: its tracks are read all the same, as the commands read them)."""
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError:
@@ -301,4 +304,5 @@ def _file_config(path: str | Path, text: str) -> Config:
     try:
         return resolve(raw)
     except CondtrackError as error:
-        raise CondtrackError(f"{path}: root attribute 'config': {error}") from None
+        warn(f"{path}: root attribute 'config' is not a config of this version ({error}): read without it (config None)")
+        return None

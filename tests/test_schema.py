@@ -14,7 +14,7 @@ from click.testing import CliRunner
 
 from condtrack_cli import COORDINATES, SCHEMA_VERSION
 from condtrack_cli.cli import cli
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, CondtrackWarning
 from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.io.read import matched_to_input, read_tracks
 from condtrack_cli.io.compare import compare_tracks
@@ -300,19 +300,25 @@ def test_an_hdf5_without_n_frames_has_the_frames_of_its_tracks(tmp_path):
 
 
 def test_a_config_attribute_that_is_no_config_is_refused_naming_the_file(tmp_path):
-    """ct.read_tracks of a file whose config attribute was not YAML ended in PyYAML's ParserError traceback, and one
-    naming an unknown key said "config key ..." without naming the file; both now name the file."""
+    """ct.read_tracks of a file whose config attribute was not YAML ended in PyYAML's ParserError traceback; it now
+    names the file. One whose config this version does not take (another version's: a key since renamed or removed)
+    said "config key ..." without naming the file and read nothing, where the commands read its tracks; it is now read
+    without its config, with a warning naming the file and the key."""
     import condtrack_cli as ct
 
     path = tmp_path / "t.h5"
     damaged = "damaged or incomplete condtrack HDF5 file (root attribute 'config' is"
-    for config, said in (("a: [1", f"{damaged} not valid YAML)"), ("", f"{damaged} not a mapping of sections)"),
-                         ("measure:\n  templat: 11\n",
-                          "root attribute 'config': config key 'measure.templat': unknown key")):
+    for config, said in (("a: [1", f"{damaged} not valid YAML)"), ("", f"{damaged} not a mapping of sections)")):
         write_tracks(small_tracks(), path, SequenceInfo("frames/", 64, 48, F, 0.0), {**TRACK_META, "config": config},
                      OutputSettings())
         with pytest.raises(CondtrackError, match=rf"^{re.escape(str(path))}: {re.escape(said)}"):
             ct.read_tracks(path)
+    write_tracks(small_tracks(), path, SequenceInfo("frames/", 64, 48, F, 0.0),
+                 {**TRACK_META, "config": "measure:\n  templat: 11\n"}, OutputSettings())
+    with pytest.warns(CondtrackWarning, match=rf"^{re.escape(str(path))}: root attribute 'config' is not a config of "
+                                              r"this version \(config key 'measure.templat': unknown key"):
+        back = ct.read_tracks(path)
+    assert back.config is None and np.array_equal(back.xy, small_tracks().xy, equal_nan=True)
 
 
 def test_optional_datasets_of_auto_match_the_doc(tmp_path):
