@@ -291,11 +291,15 @@ def test_queries_and_config_may_be_any_path_like():
 
 def test_a_csv_read_back_and_written_as_hdf5_can_be_drawn_on_its_frames(tmp_path, cnlf_tracks):
     """read_tracks('t.csv').to_hdf5('t.h5') recorded a frame size of 0 x 0 px (a CSV holds none), so `render t.h5`
-    refused the very sequence it came from ('tracked on 0x0 px'); an unknown frame size is now not recorded."""
+    refused the very sequence it came from ('tracked on 0x0 px'); an unknown frame size is now not recorded. Nor are
+    an unknown input ("", which `info` printed as a blank) and its fps (0, which `info` read as "a folder of frames")."""
     cnlf_tracks.to_csv(tmp_path / "t.csv")
     ct.read_tracks(tmp_path / "t.csv").to_hdf5(tmp_path / "t.h5")
     with h5py.File(tmp_path / "t.h5") as f:
-        assert "width" not in f.attrs and "height" not in f.attrs and f.attrs["n_frames"] == 30
+        assert not {"width", "height", "input", "fps"} & set(f.attrs) and f.attrs["n_frames"] == 30
+    shown = subprocess.run([sys.executable, "-m", "condtrack_cli", "info", str(tmp_path / "t.h5")], capture_output=True,
+                           text=True, cwd=tmp_path).stdout
+    assert "input:             n/a\n" in shown and "fps:               n/a\n" in shown
     done = subprocess.run([sys.executable, "-m", "condtrack_cli", "render", str(tmp_path / "t.h5"), str(SAMPLE),
                            "-o", str(tmp_path / "o.mp4"), "--contact-sheet", str(tmp_path / "sheet.png")], capture_output=True, text=True, cwd=tmp_path)
     assert done.returncode == 0, done.stderr

@@ -79,6 +79,8 @@ def write_hdf5(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, A
             "schema_version": SCHEMA_VERSION, "condtrack_version": __version__, "input": info.input,
             "n_frames": info.n_frames, "fps": info.fps, "coordinates": COORDINATES,
         }
+        if not info.input:  # unknown ("") for tracks read back from a CSV: not recorded, nor its fps (0: a folder)
+            del attrs["input"], attrs["fps"]
         if info.width and info.height:  # unknown (0) for tracks read back from a CSV: not recorded as 0 x 0 px
             attrs.update(width=info.width, height=info.height)
         attrs.update(meta)
