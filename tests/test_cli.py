@@ -131,6 +131,15 @@ def test_bad_config_and_output_are_refused_before_work(shifted_folder, tmp_path)
     assert not list(tmp_path.glob("a.*"))
 
 
+@pytest.mark.parametrize("option, named", [("-o", "'-o' / '--output'"), ("--overlay", "'--overlay'")])
+def test_an_empty_output_path_is_refused_as_empty(shifted_folder, option, named):
+    """-o "" (an unset shell variable) was refused as ".: unknown output format ''", naming a folder nobody gave."""
+    folder, _ = shifted_folder
+    result = run_cli("track", str(folder), option, "")
+    assert result.returncode == 2
+    assert result.stderr.splitlines()[-1] == f"Error: Invalid value for {named}: an empty path; name a file"
+
+
 def _installed_plugin(tmp_path, monkeypatch, name: str, entry: str) -> None:
     """A distribution ``name`` 1.0 installed on sys.path (tmp_path) whose ``condtrack.stages`` entry point is
     ``entry`` (``"key = module"``), and the registry's entry points read again."""

@@ -37,9 +37,11 @@ def json_value(value: Any) -> Any:
 
 def checked(check: Callable[[Path], None]):
     """A click callback running ``check(path)`` on the option's value when given: a CondtrackError it raises is a bad
-    value of that option (a usage error, exit 2, naming the option)."""
+    value of that option (a usage error, exit 2, naming the option), as is an empty value."""
 
     def callback(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
+        if value == "":  # Path("") is ".", which the checks would name instead
+            raise click.BadParameter("an empty path; name a file", ctx, param)
         if value is not None:
             try:
                 check(Path(value))
