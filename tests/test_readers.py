@@ -81,6 +81,31 @@ def test_sixteen_bit_and_colour_conversion():
         to_gray8(np.zeros((2, 2), np.float32), "frame 0")
 
 
+@pytest.mark.filterwarnings("ignore:.*queries are untrackable:condtrack_cli.errors.CondtrackWarning")  # incidental queries (issue 29)
+def test_frames_of_a_twelve_bit_camera_are_read_at_their_bit_depth(shifted_folder, tmp_path):
+    """A 12-bit camera's frames in 16-bit files (values 0..4095) were read as value / 257: 17 grey levels at most,
+    without a word. They now get a warning naming frames.bit_depth, and read at 12 bits they are the 8-bit frames they
+    were made from, so the same queries give the same tracks."""
+    import condtrack_cli as ct
+
+    folder, _ = shifted_folder
+    twelve = tmp_path / "twelve"
+    twelve.mkdir()
+    for path in sorted(folder.iterdir()):
+        grey = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(twelve / path.name), np.round(grey * (4095 / 255)).astype(np.uint16))
+    with pytest.warns(CondtrackWarning, match=r"16-bit frames whose values stay below 4096 \(frame 0: at most \d+\) are "
+                                              r"read as value / 257, at most \d+ grey levels; .* want frames.bit_depth"):
+        open_frames(FrameSettings(), twelve)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        frames = list(open_frames(FrameSettings(bit_depth=12), twelve))
+    assert all(np.array_equal(a, b) for a, b in zip(frames, open_frames(FrameSettings(), folder), strict=True))
+    queries = np.array([[0, 120.0, 100.0], [0, 200.0, 150.0]])
+    expected = ct.track(folder, queries=queries, method="stk")
+    assert ct.track(twelve, queries=queries, method="stk", config={"frames": {"bit_depth": 12}}).xy.tolist() == expected.xy.tolist()
+
+
 def test_sixteen_bit_colour_file(tmp_path):
     image = np.zeros((4, 4, 3), np.uint16)
     image[..., 1] = 65535  # green

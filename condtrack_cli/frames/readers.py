@@ -2,7 +2,9 @@
 
 Conversion to 8-bit grey, the same for every input:
 - colour (BGR or BGRA) -> grey with OpenCV's weights 0.299 R + 0.587 G + 0.114 B;
-- 16-bit -> 8-bit by value / 257, rounded (full range 0..65535 -> 0..255);
+- 16-bit -> 8-bit by value 255 / (2^``bit_depth`` - 1), rounded, at most 255 (``bit_depth`` 16, the default:
+  value / 257, full range 0..65535 -> 0..255; 12 for a 12-bit camera's frames, 0..4095 -> 0..255); a folder whose
+  first frame is 16-bit with every value below 4096 read at 16 bits gets a warning (at most 16 grey levels);
 - 8-bit grey is kept as it is; any other pixel type is refused.
 
 A folder is read in natural sort order (``frame2`` before ``frame10``). Files
@@ -37,6 +39,15 @@ class FrameSettings(StageSettings):
     non_image_files: Literal["skip", "refuse"] = Field(
         "skip", description="files in a frame folder that are not images: skip (warn once) or refuse"
     )
+    bit_depth: int = Field(
+        16, ge=8, le=16,
+        description="significant bits of 16-bit frames (12 for a 12-bit camera's): a value v is read as the grey level "
+                    "round(255 v / (2^bit_depth - 1)), at most 255; 8-bit frames are read as they are",
+    )
+
+
+#: A 16-bit first frame whose values all stay below this, read at 16 bits, gets a warning (``FolderSource``).
+NARROW_16BIT = 4096
 
 
 def natural_key(name: str) -> list:
@@ -44,10 +55,11 @@ def natural_key(name: str) -> list:
     return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
 
 
-def to_gray8(image: np.ndarray, where: str) -> np.ndarray:
-    """(H, W[, C]) uint8/uint16 -> (H, W) uint8 grey, as documented above."""
+def to_gray8(image: np.ndarray, where: str, bit_depth: int = 16) -> np.ndarray:
+    """(H, W[, C]) uint8/uint16 -> (H, W) uint8 grey, as documented above (``bit_depth``: of 16-bit images)."""
     if image.dtype == np.uint16:
-        image = ((image.astype(np.uint32) * 2 + 257) // 514).astype(np.uint8)  # round(v / 257)
+        top = (1 << bit_depth) - 1  # round(255 v / top) in integers (at 16 bits: round(v / 257), 510 v + top < 2^32)
+        image = np.minimum((image.astype(np.uint32) * 510 + top) // (2 * top), 255).astype(np.uint8)
     elif image.dtype != np.uint8:
         raise CondtrackError(f"{where}: unsupported pixel type {image.dtype} (8- or 16-bit images only)")
     if image.ndim == 3:
@@ -110,12 +122,17 @@ class FolderSource:
             raise CondtrackError(f"{folder}: no image files ({', '.join(IMAGE_EXTENSIONS)}) in the folder")
         if others:
             warn(f"{folder}: skipping {len(others)} non-image file(s), e.g. '{others[0]}'")
-        self.paths = [folder / n for n in images]
-        first = self.read(0)
+        self.paths, self.bit_depth = [folder / n for n in images], settings.bit_depth
+        raw = self._decoded(0)
+        if raw.dtype == np.uint16 and self.bit_depth == 16 and raw.max() < NARROW_16BIT:
+            warn(f"{folder}: 16-bit frames whose values stay below {NARROW_16BIT} (frame 0: at most {raw.max()}) are "
+                 f"read as value / 257, at most {round(raw.max() / 257) + 1} grey levels; frames of a camera with "
+                 "fewer bits want frames.bit_depth (12 for a 12-bit one)")
+        first = to_gray8(raw, f"frame 0 ({self.paths[0]})", self.bit_depth)
         self.info = SequenceInfo(str(folder), first.shape[1], first.shape[0], len(self.paths), 0.0)
 
-    def read(self, index: int) -> np.ndarray:
-        """Frame ``index`` as (H, W) uint8."""
+    def _decoded(self, index: int) -> np.ndarray:
+        """The file of frame ``index`` as decoded (any depth and channels); CondtrackError naming it when unreadable."""
         path = self.paths[index]
         if path.suffix.lower() in JPEG_EXTENSIONS and cut_short(path):  # before libjpeg decodes it anyway
             raise CondtrackError(f"frame {index} ({path}): the JPEG file is cut short (no end-of-image marker in its "
@@ -124,8 +141,13 @@ class FolderSource:
             raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if raw is None:
             raise CondtrackError(f"frame {index} ({path}): not a readable image")
-        image = to_gray8(raw, f"frame {index} ({path})")
-        if hasattr(self, "info") and image.shape != (self.info.height, self.info.width):
+        return raw
+
+    def read(self, index: int) -> np.ndarray:
+        """Frame ``index`` as (H, W) uint8."""
+        path = self.paths[index]
+        image = to_gray8(self._decoded(index), f"frame {index} ({path})", self.bit_depth)
+        if image.shape != (self.info.height, self.info.width):
             raise CondtrackError(
                 f"frame {index} ({path}): size {image.shape[1]}x{image.shape[0]} differs from the first frame's "
                 f"{self.info.width}x{self.info.height}"
