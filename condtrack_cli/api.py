@@ -21,12 +21,11 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import numpy as np
-import yaml
 
 from condtrack_cli import MAX_SEED, pipeline, registry, types
-from condtrack_cli.config import Config, load_config, resolve, yaml_scalar
+from condtrack_cli.config import Config, load_config, yaml_scalar
 from condtrack_cli.detect.trackability import POLICIES, query_scores, screen_queries, trackability_settings
-from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain, python_value, warn
+from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain, python_value
 from condtrack_cli.io import read as io_read
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.interface import OutputSettings
@@ -284,25 +283,6 @@ def read_tracks(path: str | Path) -> Tracks:
         input=str(meta.get("input", "")), width=int(meta.get("width", 0)), height=int(meta.get("height", 0)),
         n_frames=io_read.frame_count(result, meta), fps=float(meta.get("fps", 0.0)),
     )
-    config = _file_config(path, meta["config"]) if "config" in meta else None
+    config = io_read.stored_config(path, meta)
     attributes = {key: python_value(meta[key]) for key in RUN_ATTRIBUTES if key in meta}  # h5py's np.int64: int
     return Tracks(result, info, config, attributes)
-
-
-def _file_config(path: str | Path, text: str) -> Config | None:
-    """The resolved config of a track file's ``config`` attribute; CondtrackError naming the file when it is no YAML
-    mapping; None, with a warning naming the file, when this version does not take it (a file of another version,
-    whose config has a key since renamed or removed: its tracks are read all the same, as the commands read them)."""
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError:
-        raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file (root attribute 'config' is not "
-                             "valid YAML)") from None
-    if not isinstance(raw, dict):
-        raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file (root attribute 'config' is not a "
-                             "mapping of sections)")
-    try:
-        return resolve(raw)
-    except CondtrackError as error:
-        warn(f"{path}: root attribute 'config' is not a config of this version ({error}): read without it (config None)")
-        return None

@@ -9,7 +9,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from click.testing import CliRunner
 
+from condtrack_cli.cli import cli
 from condtrack_cli.errors import CondtrackError, CondtrackWarning
 from condtrack_cli.frames.prefetch import Prefetched
 from condtrack_cli.frames.readers import FrameSettings, natural_key, open_frames, to_gray8
@@ -103,7 +105,11 @@ def test_frames_of_a_twelve_bit_camera_are_read_at_their_bit_depth(shifted_folde
     assert all(np.array_equal(a, b) for a, b in zip(frames, open_frames(FrameSettings(), folder), strict=True))
     queries = np.array([[0, 120.0, 100.0], [0, 200.0, 150.0]])
     expected = ct.track(folder, queries=queries, method="stk")
-    assert ct.track(twelve, queries=queries, method="stk", config={"frames": {"bit_depth": 12}}).xy.tolist() == expected.xy.tolist()
+    tracked = ct.track(twelve, queries=queries, method="stk", config={"frames": {"bit_depth": 12}})
+    assert tracked.xy.tolist() == expected.xy.tolist()
+    tracked.to_hdf5(tmp_path / "t.h5")  # render reads the frames as they were tracked: no warning
+    drawn = CliRunner().invoke(cli, ["render", str(tmp_path / "t.h5"), str(twelve), "-o", str(tmp_path / "o.mp4")])
+    assert drawn.exit_code == 0 and "16-bit" not in drawn.output, drawn.output
 
 
 def test_sixteen_bit_colour_file(tmp_path):

@@ -13,6 +13,7 @@ from condtrack_cli.cli import cli
 from condtrack_cli.cli.info import info_command
 from condtrack_cli.cli.render import render_command
 from condtrack_cli.errors import CondtrackError, CondtrackWarning
+from condtrack_cli.config import load_config
 from condtrack_cli.frames.readers import FrameSettings, open_frames
 from condtrack_cli.io.interface import OutputSettings
 from condtrack_cli.io.write import write_tracks
@@ -21,7 +22,7 @@ from condtrack_cli.types import Queries, SequenceInfo, Tracks
 from conftest import SAMPLES
 
 WIDTH, HEIGHT, N_FRAMES = 96, 64, 8
-CONFIG = "x: 1\n"
+CONFIG = load_config({}).to_yaml()  # a track file's config attribute: the resolved defaults
 
 
 @pytest.fixture
@@ -298,7 +299,7 @@ def test_info_prints_what_the_file_holds(tmp_path):
     assert "distribution:      Student-t per row, dof 4 .. 6 (median 5) on 53.3% of rows, Gaussian elsewhere" in out
     assert "measurements:      stored" in out and "particles:         not stored" in out
     assert "method:            clf" in out and "seed:              0" in out
-    assert out.endswith("config (resolved):\n  x: 1\n")
+    assert out.endswith("config (resolved):\n" + "".join(f"  {line}\n" for line in CONFIG.splitlines()))
 
 
 def test_info_refuses_a_bad_file_naming_it(tmp_path):

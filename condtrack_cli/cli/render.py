@@ -40,7 +40,7 @@ def render_command(tracks_path: str, input_path: str, output_path: str, sheet_pa
     the top-left pixel (OpenCV's convention).
     """
     from condtrack_cli.frames.readers import FrameSettings, open_frames
-    from condtrack_cli.io.read import matched_to_input, read_tracks, stored_particles
+    from condtrack_cli.io.read import matched_to_input, read_tracks, stored_config, stored_particles
     from condtrack_cli.io.atomic import check_writable, refuse_overwriting_inputs
     from condtrack_cli.render import check_video_path, render_contact_sheet, render_overlay
 
@@ -52,7 +52,9 @@ def render_command(tracks_path: str, input_path: str, output_path: str, sheet_pa
         check_writable(sheet)
     refuse_overwriting_inputs({"-o": output, "--contact-sheet": sheet}, {"INPUT": input_path, "TRACKS": tracks_file})
     tracks, meta = read_tracks(tracks_file)
-    source = open_frames(FrameSettings(), input_path)
+    config = stored_config(tracks_file, meta)  # the frames read as they were tracked (frames.bit_depth)
+    stored = config.stage("frames").settings if config is not None else None
+    source = open_frames(stored if isinstance(stored, FrameSettings) else FrameSettings(), input_path)
     tracks = matched_to_input(tracks, meta, tracks_file, source.info)
     with stored_particles(tracks_file, tracks) as particles:
         written = render_overlay(tracks, source, output, source.info.fps, trail=trail, particles=particles, style=style)
