@@ -165,7 +165,7 @@ def track_sequence(
     input_path: str | Path, config: Config, queries: str | os.PathLike | np.ndarray | None = None, seed: int = 0,
     progress: Callable[[int, int], None] | None = None,
 ) -> tuple[Tracks, Any]:
-    """Track ``input_path`` (a frame folder or a video) with a validated ``config``: the path of ``condtrack track``.
+    """Track ``input_path`` (a frame folder, a multi-page TIFF or a video) with a validated ``config``: the path of ``condtrack track``.
 
     Returns the tracks and the opened frame source (for an overlay).
 
@@ -212,7 +212,7 @@ def track(
     progress: bool | Callable[[int, int], None] = False, untrackable: str | None = None,
     max_std: float | None = None, forward_only: bool = False,
 ) -> Tracks:
-    """Track points through ``source``, a folder of frames or a video file.
+    """Track points through ``source``, a folder of frames, a multi-page TIFF or a video file.
 
     queries: a CSV path (``frame,x,y[,point_id]``), an (N, 3) array of
     ``frame, x, y`` rows (point ids 0..N-1), or None to detect points on frame 0.

@@ -41,7 +41,7 @@ DEFAULT_NAMES = {"frames": "auto", "detect": "shi_tomasi", "motion": "dis", "mea
 DEFAULT_METHOD = "auto"
 
 SECTION_DOCS = {
-    "frames": "how frames are read (folder of images or video)",
+    "frames": "how frames are read (folder of images, multi-page TIFF or video)",
     "detect": "where points come from when no queries file is given, and the trackability test of queries",
     "motion": "motion between consecutive frames: local field, its noise and the global fit (paper §5.1)",
     "measure": "SSD matching of the reference patch and R_k from the correlation surface (§5.2)",

@@ -112,6 +112,31 @@ def test_frames_of_a_twelve_bit_camera_are_read_at_their_bit_depth(shifted_folde
     assert drawn.exit_code == 0 and "16-bit" not in drawn.output, drawn.output
 
 
+@pytest.mark.filterwarnings("ignore:.*queries are untrackable:condtrack_cli.errors.CondtrackWarning")  # incidental queries (issue 29)
+def test_a_multi_page_tiff_is_a_sequence_of_its_pages(shifted_folder, tmp_path, monkeypatch):
+    """A microscope's stack given as the input was opened as a video: one frame (the first page), and the queries
+    after it refused. Its pages are now the frames, decoded a few at a time (here 4, across a chunk's end), the same
+    frames and tracks as the folder of its pages; a page of another size is refused naming it."""
+    import condtrack_cli as ct
+    from condtrack_cli.frames import readers
+
+    folder, _ = shifted_folder
+    frames = list(open_frames(FrameSettings(), folder))
+    stack = tmp_path / "stack.tif"
+    assert cv2.imwritemulti(str(stack), frames)
+    monkeypatch.setattr(readers, "STACK_CHUNK", 4)
+    source = open_frames(FrameSettings(), stack)
+    assert source.info.n_frames == len(frames) == 6 and source.info.input == str(stack)
+    assert all(np.array_equal(a, b) for a, b in zip(source, frames, strict=True))
+    assert np.array_equal(source.read(5), frames[5])
+    queries = np.array([[0, 120.0, 100.0], [4, 200.0, 150.0]])
+    expected = ct.track(folder, queries=queries, method="stk")
+    assert ct.track(stack, queries=queries, method="stk").xy.tolist() == expected.xy.tolist()
+    assert cv2.imwritemulti(str(stack), frames[:2] + [frames[2][:-1]])
+    with pytest.raises(CondtrackError, match=rf"page 2 of {stack}: size 320x255 differs from the first page's 320x256"):
+        list(open_frames(FrameSettings(), stack))
+
+
 def test_sixteen_bit_colour_file(tmp_path):
     image = np.zeros((4, 4, 3), np.uint16)
     image[..., 1] = 65535  # green

@@ -32,7 +32,7 @@ COMMANDS = {
     "status": ("status:status_command",
                "Show what became of each input of the batch written into OUT_DIR (its manifest.jsonl)."),
     "synth": ("synth:synth", "Write a synthetic scene with exact ground truth: frames, queries.csv, tracks.csv, labels.csv."),
-    "track": ("track:track", "Track points through INPUT, a folder of frames or a video file."),
+    "track": ("track:track", "Track points through INPUT, a folder of frames, a multi-page TIFF or a video file."),
 }
 
 

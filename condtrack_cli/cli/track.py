@@ -70,7 +70,7 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 def track(inputs, config_path, queries_path, method, output_path, overlay_path, overlay_points, ellipses, ellipse_cap,
           seed, max_std, forward_only, smooth, untrackable, overrides, list_path, out_dir, batch_format, jobs, quiet, threads,
           **batch) -> None:
-    """Track points through INPUT, a folder of frames or a video file.
+    """Track points through INPUT, a folder of frames, a multi-page TIFF or a video file.
 
     Several INPUTs (or --from-list) make a batch: one output per input in
     --out-dir, a failing input is reported and the others go on, a final table
@@ -85,7 +85,7 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     inputs = list(inputs) + (_read_list(list_path) if list_path else [])
     if not inputs:
         usage.fail(f"{list_path}: no input listed (only blank lines and # comments)" if list_path
-                   else "no INPUT given (a frame folder or a video file, or --from-list FILE)")
+                   else "no INPUT given (a frame folder, a multi-page TIFF or a video file, or --from-list FILE)")
     in_batch = len(inputs) > 1 or out_dir is not None
     if in_batch and (output_path or overlay_path):
         usage.fail("-o and --overlay take one input; a batch writes into --out-dir")
