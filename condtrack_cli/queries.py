@@ -86,6 +86,9 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
 
 def queries_from_rows(rows: np.ndarray, info: SequenceInfo) -> Queries:
     """Queries from an (N, 3) array of ``frame, x, y`` rows (points numbered 0..N-1), checked like a CSV's."""
+    if np.ma.is_masked(rows):  # np.asarray would keep the values under the mask and track them
+        row = int(np.flatnonzero(np.ma.getmaskarray(rows).reshape(len(rows), -1).any(axis=1))[0])
+        raise InvalidArgument(f"queries: row {row} is masked; give the rows to track (e.g. rows[~rows.mask.any(axis=1)])")
     given = np.asarray(rows)
     if given.dtype.kind not in "iuf":
         raise InvalidArgumentType(f"queries: expected an (N, 3) array of numbers frame, x, y; got dtype {given.dtype}")

@@ -15,7 +15,7 @@ import pytest
 
 import condtrack_cli as ct
 from condtrack_cli.config import load_config
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, InvalidArgument
 from condtrack_cli.io.read import read_tracks as read_result
 
 from conftest import REPO, SAMPLES
@@ -277,6 +277,16 @@ def test_read_back_attributes_are_the_python_values_a_run_has(tmp_path):
     back = ct.read_tracks(tmp_path / "t.h5").attributes
     assert {key: type(value) for key, value in back.items()} == {key: type(value) for key, value in t.attributes.items()}
     assert json.loads(json.dumps(back)) == t.attributes and back["seed"] == 5 and back["max_std"] == 2.5
+
+
+@pytest.mark.filterwarnings("ignore:.*queries are untrackable:condtrack_cli.errors.CondtrackWarning")  # incidental queries (issue 29)
+def test_masked_query_rows_are_refused_not_tracked():
+    """A masked array of queries lost its mask: the values under it were tracked as queries. A masked row is now
+    refused, naming it; a masked array with nothing masked is read as its values."""
+    rows = np.ma.array([[0, 120.0, 100.0], [0, 40.0, 50.0]], mask=[[False] * 3, [False, True, False]])
+    with pytest.raises(InvalidArgument, match=r"^queries: row 1 is masked; give the rows to track"):
+        ct.track(str(SAMPLE), queries=rows, method="stk")
+    assert ct.track(str(SAMPLE), queries=np.ma.array(rows.data), method="stk") == ct.track(str(SAMPLE), queries=rows.data, method="stk")
 
 
 def test_queries_and_config_may_be_any_path_like():
