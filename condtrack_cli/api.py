@@ -23,7 +23,7 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from condtrack_cli import MAX_SEED, pipeline, registry, types
-from condtrack_cli.config import Config, load_config, yaml_scalar
+from condtrack_cli.config import Config, load_config, stored_config, yaml_scalar
 from condtrack_cli.detect.trackability import POLICIES, query_scores, screen_queries, trackability_settings
 from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain, python_value
 from condtrack_cli.io import read as io_read
@@ -283,6 +283,6 @@ def read_tracks(path: str | Path) -> Tracks:
         input=str(meta.get("input", "")), width=int(meta.get("width", 0)), height=int(meta.get("height", 0)),
         n_frames=io_read.frame_count(result, meta), fps=float(meta.get("fps", 0.0)),
     )
-    config = io_read.stored_config(path, meta)
+    config = stored_config(path, meta)
     attributes = {key: python_value(meta[key]) for key in RUN_ATTRIBUTES if key in meta}  # h5py's np.int64: int
     return Tracks(result, info, config, attributes)

@@ -318,6 +318,27 @@ def _unused_because(config: Config, path: list[str]) -> str | None:
     return f"method '{method}' does not use filter.{path[1]} (-m {' or -m '.join(users)} would)"
 
 
+def stored_config(path: str | Path, meta: Mapping[str, Any]) -> Config | None:
+    """The resolved config in the root attributes ``meta`` of the track file ``path`` (None: it holds none, a CSV);
+    CondtrackError naming the file when it is no YAML mapping; None, with a warning naming the file, when this version
+    does not take it (another version's, with a key since renamed or removed: its tracks are read all the same)."""
+    if "config" not in meta:
+        return None
+    try:
+        raw = yaml.safe_load(meta["config"])
+    except yaml.YAMLError:
+        raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file (root attribute 'config' is not "
+                             "valid YAML)") from None
+    if not isinstance(raw, dict):
+        raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file (root attribute 'config' is not a "
+                             "mapping of sections)")
+    try:
+        return resolve(raw)
+    except CondtrackError as error:
+        warn(f"{path}: root attribute 'config' is not a config of this version ({error}): read without it (config None)")
+        return None
+
+
 def load_config(
     path: str | os.PathLike | Mapping[str, Any] | None = None, overrides: list[str] = (), method: str | None = None,
     options: Mapping[str, str] | None = None,

@@ -40,7 +40,8 @@ def render_command(tracks_path: str, input_path: str, output_path: str, sheet_pa
     the top-left pixel (OpenCV's convention).
     """
     from condtrack_cli.frames.readers import FrameSettings, open_frames
-    from condtrack_cli.io.read import matched_to_input, read_tracks, stored_config, stored_particles
+    from condtrack_cli.config import stored_config
+    from condtrack_cli.io.read import matched_to_input, read_tracks, stored_particles
     from condtrack_cli.io.atomic import check_writable, refuse_overwriting_inputs
     from condtrack_cli.render import check_video_path, render_contact_sheet, render_overlay
 

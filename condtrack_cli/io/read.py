@@ -180,31 +180,6 @@ def _check_attributes(meta: dict[str, Any]) -> None:
             raise ValueError(f"root attribute '{key}' is {plain(meta[key])}, not a string")
 
 
-def stored_config(path: str | Path, meta: dict[str, Any]):
-    """The resolved ``Config`` of a track file's ``config`` attribute (None: it holds none, a CSV); CondtrackError
-    naming the file when it is no YAML mapping; None, with a warning naming the file, when this version does not take
-    it (a file of another version, whose config has a key since renamed or removed: its tracks are read all the same)."""
-    import yaml
-
-    from condtrack_cli.config import resolve  # here: the config module imports the stages' settings
-
-    if "config" not in meta:
-        return None
-    try:
-        raw = yaml.safe_load(meta["config"])
-    except yaml.YAMLError:
-        raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file (root attribute 'config' is not "
-                             "valid YAML)") from None
-    if not isinstance(raw, dict):
-        raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file (root attribute 'config' is not a "
-                             "mapping of sections)")
-    try:
-        return resolve(raw)
-    except CondtrackError as error:
-        warn(f"{path}: root attribute 'config' is not a config of this version ({error}): read without it (config None)")
-        return None
-
-
 def frame_count(tracks: Tracks, meta: dict[str, Any]) -> int:
     """F of a track file read by :func:`read_tracks`: its ``n_frames`` attribute, else the frames of its tracks."""
     return int(meta.get("n_frames", tracks.xy.shape[1]))
