@@ -135,6 +135,9 @@ def test_a_multi_page_tiff_is_a_sequence_of_its_pages(shifted_folder, tmp_path, 
     assert cv2.imwritemulti(str(stack), frames[:2] + [frames[2][:-1]])
     with pytest.raises(CondtrackError, match=rf"page 2 of {stack}: size 320x255 differs from the first page's 320x256"):
         list(open_frames(FrameSettings(), stack))
+    with pytest.warns(CondtrackWarning, match=r"frame 0 \(stack.tif\) is a TIFF of 3 pages, of which a frame folder reads "
+                                              "the first; a stack is read page by page when it is the input itself"):
+        open_frames(FrameSettings(), tmp_path)  # the stack in a folder: a frame
 
 
 def test_sixteen_bit_colour_file(tmp_path):

@@ -137,6 +137,9 @@ class FolderSource:
         self.paths, self.bit_depth = [folder / n for n in images], settings.bit_depth
         raw = self._decoded(0)
         warn_if_narrow(raw, folder, self.bit_depth)
+        if self.paths[0].suffix.lower() in STACK_EXTENSIONS and (pages := cv2.imcount(str(self.paths[0]))) > 1:
+            warn(f"{folder}: frame 0 ({self.paths[0].name}) is a TIFF of {pages} pages, of which a frame folder reads "
+                 "the first; a stack is read page by page when it is the input itself")
         first = to_gray8(raw, f"frame 0 ({self.paths[0]})", self.bit_depth)
         self.info = SequenceInfo(str(folder), first.shape[1], first.shape[0], len(self.paths), 0.0)
 
