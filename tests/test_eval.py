@@ -679,6 +679,18 @@ def test_cli_plot_writes_png(files, tmp_path):
     assert json.loads(result.stdout) == pytest.approx(EXPECTED["first"], abs=1e-12)
 
 
+def test_cli_plot_into_the_frame_folder_of_the_truth_is_refused(files, tmp_path):
+    """`eval t.h5 CLIP/tracks.csv --plot CLIP/plot.png` wrote the picture among CLIP's frames: the next `track CLIP`
+    read it as one more frame. A picture in GT's folder, where that folder holds images, is refused before any work."""
+    pred, gt = files
+    cv2.imwrite(str(gt.parent / "00000.png"), np.zeros((8, 8), np.uint8))  # GT's folder is a frame folder
+    out = gt.parent / "plot.png"
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--plot", str(out)])
+    assert result.exit_code != 0 and not out.exists()
+    assert str(result.exception) == (f"--plot {out}: an image in the frame folder of GT {gt.parent}; writing it would "
+                                     "replace or add a frame of the input")
+
+
 def test_cli_plot_without_matplotlib_is_one_error_line(files, tmp_path, monkeypatch):
     import sys
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import click
 
@@ -89,8 +90,10 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
     within 1 px of the GT on its query frame where the GT has it visible, else
     PRED is refused (tracked from other queries, e.g. detected without -p).
     """
+    from condtrack_cli.io.atomic import refuse_overwriting_inputs
     from condtrack_cli.io.read import read_tracks
 
+    refuse_overwriting_inputs({"--plot": plot_path}, {"of GT": _frame_folder(Path(gt).parent)})
     truth = _GT_READERS[gt_format](gt)
     tracks, _ = read_tracks(pred)
     result, data = score_tracks(tracks, truth, query_mode)
@@ -113,3 +116,13 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
             click.echo(note, err=True)
     else:
         _print_table(result, notes, f"{pred} vs {gt}, '{query_mode}' query mode")
+
+
+def _frame_folder(folder: Path) -> Path | None:
+    """``folder`` where it holds image files (GT's folder is a sequence's frame folder: a picture written there would
+    replace or add a frame), else None."""
+    from condtrack_cli.frames.readers import IMAGE_EXTENSIONS  # here: the readers load OpenCV
+
+    if folder.is_dir() and any(path.suffix.lower() in IMAGE_EXTENSIONS for path in folder.iterdir()):
+        return folder
+    return None
