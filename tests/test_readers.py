@@ -140,6 +140,25 @@ def test_a_multi_page_tiff_is_a_sequence_of_its_pages(shifted_folder, tmp_path, 
         open_frames(FrameSettings(), tmp_path)  # the stack in a folder: a frame
 
 
+@pytest.mark.parametrize("cut", ["in a page directory", "before the last page's directory"])
+def test_a_tiff_stack_cut_short_is_refused(tmp_path, cut):
+    """A stack cut short (a copy or download that stopped) was read up to the cut without a word: its decoder stops
+    at the first page directory past the end, so half a 6-page stack was tracked as a 3-page clip. It is refused,
+    naming the file and the last whole page, before any frame is read; the whole file is read as before."""
+    frames = _frames(6)
+    whole = tmp_path / "whole.tif"
+    assert cv2.imwritemulti(str(whole), frames)
+    assert open_frames(FrameSettings(), whole).info.n_frames == 6
+    data = whole.read_bytes()
+    stack = tmp_path / "stack.tif"
+    stack.write_bytes(data[: len(data) // 2] if cut == "in a page directory" else data[:-20])
+    assert 0 < cv2.imcount(str(stack)) < 6  # what the decoder alone finds
+    last = 4 if cut == "before the last page's directory" else cv2.imcount(str(stack)) - 1
+    with pytest.raises(CondtrackError, match=rf"^{stack}: the TIFF file is cut short: its chain of page directories "
+                                             rf"goes on past the end of the file after page {last} "):
+        open_frames(FrameSettings(), stack)
+
+
 def test_sixteen_bit_colour_file(tmp_path):
     image = np.zeros((4, 4, 3), np.uint16)
     image[..., 1] = 65535  # green
