@@ -159,6 +159,19 @@ def test_a_tiff_stack_cut_short_is_refused(tmp_path, cut):
         open_frames(FrameSettings(), stack)
 
 
+def test_info_of_a_stack_s_tracks_does_not_call_it_a_folder(shifted_folder, tmp_path):
+    """A stack has no frame rate, as a folder has none; info printed 'fps: 0 (none: a folder of frames)' for it."""
+    import condtrack_cli as ct
+
+    folder, _ = shifted_folder
+    stack = tmp_path / "stack.tif"
+    assert cv2.imwritemulti(str(stack), list(open_frames(FrameSettings(), folder)))
+    ct.track(stack, method="stk").to_hdf5(tmp_path / "t.h5")
+    result = CliRunner().invoke(cli, ["info", str(tmp_path / "t.h5")])
+    assert result.exit_code == 0, result.output
+    assert "fps:               0 (none: a folder of frames or a multi-page TIFF)\n" in result.output
+
+
 def test_sixteen_bit_colour_file(tmp_path):
     image = np.zeros((4, 4, 3), np.uint16)
     image[..., 1] = 65535  # green

@@ -33,7 +33,7 @@ def info_command(tracks_path: str) -> None:
                if n_points and is_hdf5(path) else "n/a")  # a CSV holds no queries: its first rows are not them
     size = f"{meta['width']} x {meta['height']} px" if "width" in meta else "n/a"
     fps = meta.get("fps")
-    fps_text = "n/a" if fps is None else f"{fps:g}" + (" (none: a folder of frames)" if fps == 0 else "")
+    fps_text = "n/a" if fps is None else f"{fps:g}" + (" (none: a folder of frames or a multi-page TIFF)" if fps == 0 else "")
     rows = [
         ("file", str(path)),
         ("schema version", meta.get("schema_version", "n/a")),
