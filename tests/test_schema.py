@@ -255,6 +255,51 @@ def test_an_hdf5_whose_positions_are_integers_is_refused(tmp_path):
         read_tracks(path)
 
 
+def _negated_variance(cov):
+    cov[0, 1, 0, 0] = -0.5
+    return cov
+
+
+def _asymmetric(cov):
+    cov[0, 1, 0, 1] = 0.3
+    return cov
+
+
+def _nan_frame(queries):
+    queries[1, 0] = np.nan
+    return queries
+
+
+@pytest.mark.parametrize("dataset, change, said", [
+    ("tracks/point_id", lambda ids: ids.astype(float), "point_id holds float64 values of shape (3,), expected (P,) "
+                                                       "whole numbers"),
+    ("tracks/point_id", lambda ids: np.array([4, 9, 4]), "point_id 4 is repeated"),
+    ("queries", _nan_frame, "queries row 1 (point_id 9) is [nan, "),
+    ("queries", lambda q: q + [[100, 0, 0]], "queries row 0 (point_id 4) has frame 100, past the 4 frames of xy"),
+    ("tracks/xy", lambda xy: np.where(xy == xy[0, 1, 0], np.inf, xy), "xy at point_id 4, frame 1 is [inf, "),
+    ("tracks/cov", _negated_variance, "cov at point_id 4, frame 1 is [[-0.5, 0.0], [0.0, 2.0]]: a variance is never "
+                                      "negative"),
+    ("tracks/cov", _asymmetric, "cov at point_id 4, frame 1 is [[0.5, 0.3], [0.0, 2.0]]: its two off-diagonal "
+                                "entries differ"),
+    ("tracks/dof", lambda dof: np.where(dof == 3.5, 1.0, dof), "dof at point_id 4, frame 0 is 1.0: expected a number "
+                                                               "above 2 or inf"),
+])
+def test_an_hdf5_whose_values_a_csv_could_not_hold_is_refused(tmp_path, dataset, change, said):
+    """Values a CSV row is refused for (a negative variance, a dof of 1, a position partly infinite), and ids or
+    queries no condtrack file holds, were read from an HDF5 file: render ended in numpy's 'invalid value encountered
+    in sqrt' (dof 1), a query frame NaN in 'invalid value encountered in cast', eval in int()'s ValueError (string
+    ids); each is now refused naming the dataset, the point_id and the frame."""
+    path = tmp_path / "t.h5"
+    write_small(path)
+    read_tracks(path)  # the file as written is read
+    with h5py.File(path, "r+") as f:
+        value = change(f[dataset][()])
+        del f[dataset]
+        f[dataset] = value
+    with pytest.raises(CondtrackError, match=r"t.h5: damaged or incomplete condtrack HDF5 file \(" + re.escape(said)):
+        read_tracks(path)
+
+
 @pytest.mark.parametrize("key, value, said", [
     ("n_frames", "abc", "root attribute 'n_frames' is 'abc', not a whole number of frames"),
     ("n_frames", -1, "root attribute 'n_frames' is -1, not a whole number of frames"),

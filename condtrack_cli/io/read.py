@@ -6,7 +6,8 @@ a row. Nor does it hold queries: a point's query is taken to be its first row
 whose header is not the schema's exact header line, with a negative frame or a
 second row for one (point_id, frame), with frames far past what its rows fill
 (``CELLS_PER_ROW``), and an HDF5 file of an unknown
-``schema_version``, are refused (docs/schema.md). Files of schema 1.0 (no
+``schema_version`` or with a value a CSV row is refused for (a negative variance, a dof not above 2, ...; also
+repeated point ids and queries that are no frame and position), are refused (docs/schema.md). Files of schema 1.0 (no
 ``dof`` column or dataset, no ``/tracks/trackability``) are read as Gaussian
 (dof inf where a row exists) with trackability NaN (unknown). h5py is imported
 only by the functions that open an HDF5 file (start-up time, issue 13).
@@ -157,6 +158,53 @@ def _check_layout(tracks: Tracks) -> None:
         raise ValueError(f"method_code outside -1 .. {len(method_codes()) - 1}")
 
 
+def _check_queries(point_id: np.ndarray, table: np.ndarray) -> None:
+    """ValueError when an HDF5 file's /tracks/point_id (P,) is not P distinct whole numbers, or its /queries is not
+    (P, 3) numbers whose first column is frame numbers (whole, >= 0) and whose positions are finite."""
+    if point_id.ndim != 1 or point_id.dtype.kind not in "iu":
+        raise ValueError(f"point_id holds {point_id.dtype} values of shape {point_id.shape}, expected (P,) whole "
+                         "numbers")
+    ids, counts = np.unique(point_id, return_counts=True)
+    if (counts > 1).any():
+        raise ValueError(f"point_id {plain(ids[np.argmax(counts > 1)])} is repeated")
+    if table.shape != (len(point_id), 3) or table.dtype.kind not in "iuf":
+        raise ValueError(f"queries holds {table.dtype} values of shape {table.shape}, expected ({len(point_id)}, 3) "
+                         "numbers")
+    frame = table[:, 0]
+    bad = ~(np.isfinite(table).all(axis=1) & (frame >= 0) & (frame == np.floor(frame)))
+    if bad.any():
+        row = int(np.argmax(bad))
+        raise ValueError(f"queries row {row} (point_id {plain(point_id[row])}) is {plain(table[row])}: expected a "
+                         "frame number (whole, >= 0) and a finite position")
+
+
+def _check_values(tracks: Tracks) -> None:
+    """ValueError naming the first point_id and frame whose values an HDF5 file holds where a CSV's row would be
+    refused (:func:`_read_csv`): a position partly or not finite, a negative variance, a covariance partly NaN or
+    not symmetric, a dof not above 2 where the point has a state; or a query past the tracks' frames."""
+    xy, cov, state = tracks.xy, tracks.cov, tracks.has_state
+    late = tracks.queries.frame >= xy.shape[1]
+    if late.any():
+        row = int(np.argmax(late))
+        raise ValueError(f"queries row {row} (point_id {plain(tracks.queries.point_id[row])}) has frame "
+                         f"{plain(tracks.queries.frame[row])}, past the {xy.shape[1]} frames of xy")
+    undefined = np.isnan(cov)
+    for name, values, bad, what in (
+        ("xy", xy, ~(state | np.isnan(xy).all(axis=-1)), "a position is finite, or NaN (no state) as a whole"),
+        ("cov", cov, (cov[..., [0, 1], [0, 1]] < 0).any(axis=-1), "a variance is never negative"),
+        ("cov", cov, undefined.any(axis=(-2, -1)) & ~undefined.all(axis=(-2, -1)),
+         "a covariance is undefined (NaN) as a whole or not at all"),
+        ("cov", cov, ~((cov[..., 0, 1] == cov[..., 1, 0]) | (undefined[..., 0, 1] & undefined[..., 1, 0])),
+         "its two off-diagonal entries differ (a covariance matrix is symmetric)"),
+        ("dof", tracks.dof, state & ~(tracks.dof > 2), "expected a number above 2 or inf (Gaussian) where the point "
+         "has a state"),
+    ):
+        if bad.any():
+            p, k = np.unravel_index(int(np.argmax(bad)), bad.shape)
+            raise ValueError(f"{name} at point_id {plain(tracks.queries.point_id[p])}, frame {k} is "
+                             f"{plain(values[p, k])}: {what}")
+
+
 def _check_attributes(meta: dict[str, Any]) -> None:
     """ValueError when a root attribute that the readers use departs from docs/schema.md: ``n_frames`` a whole number
     >= 0, ``width`` and ``height`` (both or neither) whole numbers above 0, ``fps`` a finite number >= 0, ``input``
@@ -202,8 +250,9 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
                     f"{' and '.join(map(repr, READABLE_SCHEMA_VERSIONS))})"
                 )
             t = f["tracks"]
-            queries_table = f["queries"][()]
-            queries = Queries(t["point_id"][()], queries_table[:, 0].astype(np.int64), queries_table[:, 1:3])
+            point_ids, queries_table = t["point_id"][()], f["queries"][()]
+            _check_queries(point_ids, queries_table)
+            queries = Queries(point_ids, queries_table[:, 0].astype(np.int64), queries_table[:, 1:3])
             xy = t["xy"][()]
             nan = np.full(xy.shape, np.nan)  # float whatever xy holds (an integer xy is refused below)
             z = f["measurements/z"][()] if "measurements" in f else nan
@@ -219,6 +268,7 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
                             file_codes[t["method_code"][()]], z, R, trackability=scores)
             _check_layout(tracks)
             _check_attributes(meta)
+            _check_values(tracks)
         except (KeyError, OSError, RuntimeError, TypeError, ValueError, IndexError) as error:
             # h5py reports damaged metadata as OSError or RuntimeError
             raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file ({error})") from None
