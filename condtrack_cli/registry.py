@@ -34,7 +34,7 @@ ENTRY_POINT_GROUP = "condtrack.stages"
 #: The built-in stages: kind, name, settings model, factory (each ``"module:attribute"``), summary.
 BUILTINS = (
     ("frames", "auto", "condtrack_cli.frames.readers:FrameSettings", "condtrack_cli.frames.readers:open_frames",
-     "a folder of images or a video file, chosen by the path"),
+     "a folder of images, a multi-page TIFF or a video file, chosen by the path"),
     ("detect", "shi_tomasi", "condtrack_cli.detect.shi_tomasi:ShiTomasiSettings",
      "condtrack_cli.detect.shi_tomasi:detect_points", "Shi-Tomasi corners that pass the trackability test"),
     ("motion", "dis", "condtrack_cli.motion.dense:DisMotionSettings", "condtrack_cli.motion.dense:make_dis_motion",

@@ -172,6 +172,13 @@ def test_info_of_a_stack_s_tracks_does_not_call_it_a_folder(shifted_folder, tmp_
     assert "fps:               0 (none: a folder of frames or a multi-page TIFF)\n" in result.output
 
 
+def test_stages_names_the_multi_page_tiff_among_the_inputs():
+    """`condtrack stages` summed the frames stage up as 'a folder of images or a video file', after stacks were read."""
+    result = CliRunner().invoke(cli, ["stages"])
+    assert result.exit_code == 0
+    assert "  auto         a folder of images, a multi-page TIFF or a video file, chosen by the path\n" in result.output
+
+
 def test_sixteen_bit_colour_file(tmp_path):
     image = np.zeros((4, 4, 3), np.uint16)
     image[..., 1] = 65535  # green
