@@ -40,21 +40,31 @@ FIELDS = ("xy", "cov", "dof", "visible", "z", "R", "method")
 BLOCK_FRAMES = 64
 
 
-def _prefix() -> str:
-    """Temporary folders of this process are named ``condtrack-<host>-<pid>-...``, so a later run can tell a dead
-    process's folders (``kill -9`` runs no clean-up) from a running one's."""
-    return f"condtrack-{socket.gethostname()}-"
+def owned_name(stem: str) -> str:
+    """``<stem>-<host>-<pid>-``: how the name of a folder this process makes starts, so that a later run can tell a
+    dead process's folders (``kill -9`` runs no clean-up) from a running one's (:func:`remove_dead_folders`)."""
+    return f"{stem}-{socket.gethostname()}-{os.getpid()}-"
+
+
+def remove_dead_folders(where: str | Path, stem: str) -> None:
+    """Delete the folders in ``where`` whose names start as :func:`owned_name` (``stem``) of a dead process of this
+    host; a running process's, and another host's (a shared folder), stay."""
+    pattern = re.compile(re.escape(f"{stem}-{socket.gethostname()}-") + r"(\d+)-")
+    with os.scandir(where) as entries:
+        for entry in entries:
+            found = pattern.match(entry.name)
+            if found and entry.is_dir(follow_symlinks=False) and not _alive(int(found.group(1))):
+                shutil.rmtree(entry.path, ignore_errors=True)
+
+
+#: The stem of the temporary folders' names (:func:`owned_name`).
+TEMPORARY_STEM = "condtrack"
 
 
 @functools.cache
 def remove_stale_folders() -> None:
     """Delete, once per process, the temporary folders left in ``TMPDIR`` by dead condtrack processes of this host."""
-    pattern = re.compile(re.escape(_prefix()) + r"(\d+)-")
-    with os.scandir(tempfile.gettempdir()) as entries:
-        for entry in entries:
-            found = pattern.match(entry.name)
-            if found and entry.is_dir(follow_symlinks=False) and not _alive(int(found.group(1))):
-                shutil.rmtree(entry.path, ignore_errors=True)
+    remove_dead_folders(tempfile.gettempdir(), TEMPORARY_STEM)
 
 
 def _alive(pid: int) -> bool:
@@ -71,7 +81,7 @@ def temporary_folder() -> tempfile.TemporaryDirectory:
     """A new temporary folder for arrays waiting on disk; a CondtrackError naming ``TMPDIR``'s folder when it fails."""
     try:
         remove_stale_folders()
-        return tempfile.TemporaryDirectory(prefix=f"{_prefix()}{os.getpid()}-")
+        return tempfile.TemporaryDirectory(prefix=owned_name(TEMPORARY_STEM))
     except OSError as error:
         raise _write_error(error) from error
 

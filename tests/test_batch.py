@@ -155,6 +155,26 @@ def test_killed_batch_resumes_with_skip_existing_and_does_each_input_once(tmp_pa
     assert [r["status"] for r in manifest(out_dir)[len(first) + len(second):]] == ["ok"]
 
 
+def test_a_batch_removes_the_staging_folder_of_a_batch_killed_with_sigkill(clips, tmp_path):
+    """A batch killed with SIGKILL (the OOM killer, a cluster's time limit) runs no clean-up: its staging folder in
+    OUT_DIR, with the outputs it had not moved in place, stayed there for good, one more at each kill. The next batch
+    into OUT_DIR removes it; a running batch's (this process stands for one) and another host's stay."""
+    import socket
+
+    dead = subprocess.Popen(["true"])
+    dead.wait()
+    out_dir, host = tmp_path / "tracks", socket.gethostname()
+    stale, running, other_host = (out_dir / f".outputs-{host}-{dead.pid}-.x1.part",
+                                  out_dir / f".outputs-{host}-{os.getpid()}-.x2.part",
+                                  out_dir / f".outputs-{host}x-{dead.pid}-.x3.part")
+    for folder in (stale, running, other_host):
+        folder.mkdir(parents=True)
+        (folder / "clip000_frames.h5").write_bytes(b"an output not moved in place")
+    result = run_cli("track", clips[0], "-m", "stk", "--out-dir", str(out_dir), "-q")
+    assert result.returncode == 0, result.stderr
+    assert sorted(p.name for p in out_dir.iterdir()) == sorted([MANIFEST, "frames.h5", running.name, other_host.name])
+
+
 def test_two_shards_cover_the_inputs_once_with_the_names_of_the_whole_list(clips, tmp_path):
     out_dir = tmp_path / "tracks"
     for index in range(2):

@@ -27,9 +27,14 @@ from condtrack_cli.batch.plan import plan_batch
 from condtrack_cli.batch.report import ClipProgress, report_end
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
+from condtrack_cli.frame_reports import owned_name, remove_dead_folders
 from condtrack_cli.interrupts import held_signals
 from condtrack_cli.io.atomic import publish, staging_folder
 from condtrack_cli.threads import requested_threads, threads_per_job
+
+
+#: The stem of the staging folder's name in OUT_DIR (``.outputs-<host>-<pid>-*.part``: ``frame_reports.owned_name``).
+STAGING_STEM = ".outputs"
 
 
 def run_batch(
@@ -71,8 +76,10 @@ def run_batch(
                 records[record.input] = record
             progress(record)
 
-        # The jobs write into a staging folder, removed as the batch ends with what was not moved in place.
-        with sigterm_exits(), staging_folder(Path(out_dir) / "outputs") as staging:
+        # The jobs write into a staging folder, removed as the batch ends with what was not moved in place; one left
+        # by a batch killed with SIGKILL (no clean-up runs), the outputs it had not moved in place, by the next batch.
+        remove_dead_folders(out_dir, STAGING_STEM)
+        with sigterm_exits(), staging_folder(Path(out_dir) / owned_name(STAGING_STEM[1:])) as staging:
             for record in plan.skipped:
                 finished(record)
             todo = [replace(job, staging=str(staging)) for job in plan.todo]
