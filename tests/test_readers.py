@@ -112,6 +112,22 @@ def test_frames_of_a_twelve_bit_camera_are_read_at_their_bit_depth(shifted_folde
     assert drawn.exit_code == 0 and "16-bit" not in drawn.output, drawn.output
 
 
+def test_sixteen_bit_frames_above_the_bit_depth_get_a_warning(tmp_path):
+    """frames.bit_depth below the frames' own (12 on a 16-bit camera's frames) read every value above 4095 as white
+    (255) without a word: most of a bright frame saturated and its points lost. The first frame's values above the
+    depth now get a warning with their share and the depth that reads them; frames within it get none."""
+    image = np.linspace(0, 65535, 48 * 64).reshape(48, 64).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "0.png"), image)
+    with pytest.warns(CondtrackWarning, match=rf"^{tmp_path}: frames.bit_depth is 12, but frame 0 has values up to "
+                                              r"65535, above 4095: 94% of its pixels are read as white \(255\); "
+                                              r"frames.bit_depth 16 reads them$"):
+        open_frames(FrameSettings(bit_depth=12), tmp_path)
+    cv2.imwrite(str(tmp_path / "0.png"), image >> 4)  # 0..4095
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert open_frames(FrameSettings(bit_depth=12), tmp_path).read(0).max() == 255
+
+
 @pytest.mark.filterwarnings("ignore:.*queries are untrackable:condtrack_cli.errors.CondtrackWarning")  # incidental queries (issue 29)
 def test_a_multi_page_tiff_is_a_sequence_of_its_pages(shifted_folder, tmp_path, monkeypatch):
     """A microscope's stack given as the input was opened as a video: one frame (the first page), and the queries

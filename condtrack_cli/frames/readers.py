@@ -4,7 +4,8 @@ Conversion to 8-bit grey, the same for every input:
 - colour (BGR or BGRA) -> grey with OpenCV's weights 0.299 R + 0.587 G + 0.114 B;
 - 16-bit -> 8-bit by value 255 / (2^``bit_depth`` - 1), rounded, at most 255 (``bit_depth`` 16, the default:
   value / 257, full range 0..65535 -> 0..255; 12 for a 12-bit camera's frames, 0..4095 -> 0..255); a folder whose
-  first frame is 16-bit with every value below 4096 read at 16 bits gets a warning (at most 16 grey levels);
+  first frame is 16-bit with every value below 4096 read at 16 bits gets a warning (at most 16 grey levels), as
+  does one with values above 2^``bit_depth`` - 1 (read as white);
 - 8-bit grey is kept as it is; any other pixel type is refused.
 
 A multi-page TIFF given as the input (a microscope's stack, ``STACK_EXTENSIONS``) is a sequence of its pages,
@@ -111,11 +112,18 @@ def opencv_log(level: int) -> Iterator[None]:
 
 def warn_if_narrow(raw: np.ndarray, where: Path, bit_depth: int) -> None:
     """A warning when the first frame ``raw`` of ``where`` is 16-bit with every value below ``NARROW_16BIT`` and read
-    at 16 bits (module docstring)."""
-    if raw.dtype == np.uint16 and bit_depth == 16 and raw.max() < NARROW_16BIT:
+    at 16 bits, or with values above ``bit_depth``'s largest, which are read as white (module docstring)."""
+    if raw.dtype != np.uint16:
+        return
+    top = (1 << bit_depth) - 1
+    if bit_depth == 16 and raw.max() < NARROW_16BIT:
         warn(f"{where}: 16-bit frames whose values stay below {NARROW_16BIT} (frame 0: at most {raw.max()}) are "
              f"read as value / 257, at most {round(raw.max() / 257) + 1} grey levels; frames of a camera with "
              "fewer bits want frames.bit_depth (12 for a 12-bit one)")
+    elif raw.max() > top:
+        warn(f"{where}: frames.bit_depth is {bit_depth}, but frame 0 has values up to {raw.max()}, above "
+             f"{top}: {(raw > top).mean():.0%} of its pixels are read as white (255); frames.bit_depth "
+             f"{int(raw.max()).bit_length()} reads them")
 
 
 class FolderSource:
