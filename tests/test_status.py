@@ -245,3 +245,22 @@ def test_a_last_line_cut_short_by_a_kill_is_ignored(tmp_path):
         manifest.write('{"input": "data/b/frames", "outp')
     result = status(str(tmp_path))
     assert result.exit_code == 0 and result.stdout.startswith("1 inputs: 1 ok", len(result.stdout.splitlines()[0]) + 1)
+
+
+@pytest.mark.parametrize("tail", ['{"input": "data/b/frames", "outp', "whole"])
+def test_a_record_appended_after_a_line_cut_short_stays_a_record(tmp_path, tail):
+    """A batch killed (or out of disk) in the middle of a manifest line left it without a newline, and the next
+    batch's record was appended to it: one broken line of both, which status refused for good ('line 2: not a JSON
+    record') and --skip-existing skipped, the new record with it. The cut line is now ended first, marked as cut
+    short (status skips it), or by a newline alone when it is a whole record."""
+    record(tmp_path, "a", "ok", 1.0)
+    whole = (tmp_path / "manifest.jsonl").read_text().splitlines()[0]
+    with open(tmp_path / "manifest.jsonl", "a") as manifest:
+        manifest.write(whole.replace('"data/a/frames"', '"data/c/frames"') if tail == "whole" else tail)
+    record(tmp_path, "b", "ok", 2.0)
+    for name in ("a", "b", "c"):
+        (tmp_path / f"{name}_frames.h5").write_bytes(b"")
+    result = status(str(tmp_path))
+    assert result.exit_code == 0, result.stderr
+    counted = "3 inputs: 3 ok" if tail == "whole" else "2 inputs: 2 ok"
+    assert "data/b/frames" in result.stdout and counted in result.stdout
