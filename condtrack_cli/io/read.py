@@ -178,6 +178,20 @@ def _check_queries(point_id: np.ndarray, table: np.ndarray) -> None:
                          "frame number (whole, >= 0) and a finite position")
 
 
+#: Relative difference of a covariance's two off-diagonal entries that a track file may hold: the rounding of the
+#: products that made them (files written before 9c8e680 held covariances symmetric to about 1e-16 of their trace).
+SYMMETRY_TOLERANCE = 1e-9
+
+
+def symmetric(cov: np.ndarray) -> np.ndarray:
+    """(...) bool: the (..., 2, 2) covariances whose off-diagonal entries are equal, or differ by at most
+    ``SYMMETRY_TOLERANCE`` times the sum of the diagonal's magnitudes."""
+    with np.errstate(invalid="ignore"):  # inf - inf: not within the tolerance, equal entries aside
+        gap = np.abs(cov[..., 0, 1] - cov[..., 1, 0])
+        return (cov[..., 0, 1] == cov[..., 1, 0]) | (
+            gap <= SYMMETRY_TOLERANCE * (np.abs(cov[..., 0, 0]) + np.abs(cov[..., 1, 1])))
+
+
 def _check_values(tracks: Tracks) -> None:
     """ValueError naming the first point_id and frame whose values an HDF5 file holds where a CSV's row would be
     refused (:func:`_read_csv`): a position partly or not finite, a negative variance, a covariance partly NaN or
@@ -194,7 +208,7 @@ def _check_values(tracks: Tracks) -> None:
         ("cov", cov, (cov[..., [0, 1], [0, 1]] < 0).any(axis=-1), "a variance is never negative"),
         ("cov", cov, undefined.any(axis=(-2, -1)) & ~undefined.all(axis=(-2, -1)),
          "a covariance is undefined (NaN) as a whole or not at all"),
-        ("cov", cov, ~((cov[..., 0, 1] == cov[..., 1, 0]) | (undefined[..., 0, 1] & undefined[..., 1, 0])),
+        ("cov", cov, ~(symmetric(cov) | (undefined[..., 0, 1] & undefined[..., 1, 0])),
          "its two off-diagonal entries differ (a covariance matrix is symmetric)"),
         ("dof", tracks.dof, state & ~(tracks.dof > 2), "expected a number above 2 or inf (Gaussian) where the point "
          "has a state"),
