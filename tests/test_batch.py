@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import select
 import signal
 import subprocess
 import sys
@@ -173,6 +174,52 @@ def test_a_batch_removes_the_staging_folder_of_a_batch_killed_with_sigkill(clips
     result = run_cli("track", clips[0], "-m", "stk", "--out-dir", str(out_dir), "-q")
     assert result.returncode == 0, result.stderr
     assert sorted(p.name for p in out_dir.iterdir()) == sorted([MANIFEST, "frames.h5", running.name, other_host.name])
+
+
+def _running(pid: int) -> bool:
+    """Whether process ``pid`` runs (a zombie, dead but not yet reaped by its new parent, does not)."""
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="the parent-death signal is Linux's prctl")
+def test_workers_end_when_the_batch_process_is_killed(tmp_path):
+    """A batch process SIGKILLed (the OOM killer: no clean-up runs) left its -j workers tracking on for nobody, then
+    writing tracebacks into a closed pipe; each worker now gets SIGTERM when the batch's process dies."""
+    script = tmp_path / "parent.py"
+    script.write_text(  # each worker busy with a job (an idle one ends on its closed task pipe anyway)
+        "import multiprocessing, os, pathlib, time\n"
+        "from condtrack_cli.batch import local\n"
+        "def job(k):\n"
+        "    pathlib.Path(f'pid{k}').write_text(str(os.getpid()))\n"
+        "    time.sleep(60)\n"
+        "if __name__ == '__main__':\n"
+        "    pool = multiprocessing.get_context('spawn').Pool(2, initializer=local._start_worker,\n"
+        "                                                    initargs=(False, os.getpid()))\n"
+        "    pool.map_async(job, range(2), chunksize=1)\n"
+        "    while not all(pathlib.Path(f'pid{k}').exists() for k in range(2)):\n"
+        "        time.sleep(0.05)\n"
+        "    time.sleep(0.1)\n"
+        "    print(*(pathlib.Path(f'pid{k}').read_text() for k in range(2)), flush=True)\n"
+        "    time.sleep(60)\n"
+    )
+    parent = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True, cwd=tmp_path,
+                              stderr=subprocess.DEVNULL,  # its resource tracker's note on the semaphores it cleans up
+                              env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    try:
+        assert select.select([parent.stdout], [], [], 60)[0], "the pool's workers did not start"
+        workers = [int(pid) for pid in parent.stdout.readline().split()]
+        assert workers and all(_running(pid) for pid in workers)
+    finally:
+        parent.kill()
+        parent.wait(timeout=30)
+        parent.stdout.close()
+    deadline = time.monotonic() + 20
+    while any(_running(pid) for pid in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(_running(pid) for pid in workers)
 
 
 def test_two_shards_cover_the_inputs_once_with_the_names_of_the_whole_list(clips, tmp_path):

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import multiprocessing
 import os
 import signal
+import sys
 import threading
 from typing import Callable
 
@@ -46,12 +48,28 @@ def sigterm_exits():
         signal.signal(signal.SIGTERM, previous)
 
 
-def _start_worker(warnings_shown: bool) -> None:
+#: Linux's prctl option that sends the calling process a signal when its parent dies (<linux/prctl.h>).
+PR_SET_PDEATHSIG = 1
+
+
+def _end_with_parent(parent: int) -> None:
+    """On Linux, this worker gets SIGTERM when the batch's process ``parent`` dies, even by SIGKILL (the OOM killer),
+    which runs no clean-up: an orphan went on tracking for nobody, then wrote tracebacks into a closed pipe. The pool
+    starts its workers from the batch's main thread, whose end is the process's. Elsewhere nothing is done."""
+    if not sys.platform.startswith("linux"):
+        return
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    if os.getppid() != parent:  # it died before the call
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+def _start_worker(warnings_shown: bool, parent: int) -> None:
     """Pool worker set-up: Ctrl-C is the parent's to handle; SIGTERM unwinds (an unfinished output's temporary file
-    goes); warnings shown as in the parent (not with -q)."""
+    goes), as does the death of the batch's process ``parent``; warnings shown as in the parent (not with -q)."""
     show_warnings(warnings_shown)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, stop_on_sigterm)
+    _end_with_parent(parent)
 
 
 class _Environment:
@@ -90,7 +108,7 @@ def run_local(jobs: list[BatchJob], processes: int, on_record: Callable[[ClipRec
     context = multiprocessing.get_context("spawn")  # OpenCV is not fork-safe
     with _Environment(blas_environment(jobs[0].threads)):  # read by the BLAS libraries when the workers import numpy
         shown = warnings_shown()
-        pool = context.Pool(min(processes, len(jobs)), initializer=_start_worker, initargs=(shown,))
+        pool = context.Pool(min(processes, len(jobs)), initializer=_start_worker, initargs=(shown, os.getpid()))
     try:
         with held_signals() as held:
             results = pool.imap_unordered(run_job, jobs)
