@@ -281,7 +281,7 @@ def read_tracks(path: str | Path) -> Tracks:
     result = replace(result, extras=io_read.stored_extras(Path(path), result))
     info = types.SequenceInfo(
         input=str(meta.get("input", "")), width=int(meta.get("width", 0)), height=int(meta.get("height", 0)),
-        n_frames=io_read.frame_count(result, meta), fps=float(meta.get("fps", 0.0)),
+        n_frames=result.xy.shape[1], fps=float(meta.get("fps", 0.0)),
     )
     config = stored_config(path, meta)
     attributes = {key: python_value(meta[key]) for key in RUN_ATTRIBUTES if key in meta}  # h5py's np.int64: int

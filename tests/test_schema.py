@@ -319,6 +319,7 @@ def test_a_covariance_symmetric_to_rounding_is_read(tmp_path):
 @pytest.mark.parametrize("key, value, said", [
     ("n_frames", "abc", "root attribute 'n_frames' is 'abc', not a whole number of frames"),
     ("n_frames", -1, "root attribute 'n_frames' is -1, not a whole number of frames"),
+    ("n_frames", F + 1, f"root attribute 'n_frames' is {F + 1}, but /tracks/xy has {F} frames"),
     ("width", -5, "root attribute 'width' is -5, not a whole number of pixels above 0"),
     ("height", None, "root attribute 'height' is missing beside the other"),
     ("fps", float("nan"), "root attribute 'fps' is nan, not a finite number >= 0"),
@@ -327,7 +328,8 @@ def test_a_covariance_symmetric_to_rounding_is_read(tmp_path):
 def test_an_hdf5_whose_root_attributes_depart_from_the_schema_is_refused(tmp_path, key, value, said):
     """A file whose n_frames was a string ended render and ct.read_tracks in int()'s ValueError, a config that was no
     string ended info in an AttributeError; each is now refused naming the attribute, as every other damaged file is
-    (None: the attribute deleted)."""
+    (None: the attribute deleted). A file whose n_frames disagreed with /tracks/xy was read: compare reported it
+    agreeing with the file it came from, render blamed the input for having another frame count."""
     import condtrack_cli as ct
 
     path = tmp_path / "t.h5"

@@ -219,16 +219,18 @@ def _check_values(tracks: Tracks) -> None:
                              f"{plain(values[p, k])}: {what}")
 
 
-def _check_attributes(meta: dict[str, Any]) -> None:
-    """ValueError when a root attribute that the readers use departs from docs/schema.md: ``n_frames`` a whole number
-    >= 0, ``width`` and ``height`` (both or neither) whole numbers above 0, ``fps`` a finite number >= 0, ``input``
-    and ``config`` strings. Each may be absent (a file written by hand), ``n_frames`` then read as the frames of
-    /tracks/xy (:func:`frame_count`)."""
+def _check_attributes(meta: dict[str, Any], n_frames: int) -> None:
+    """ValueError when a root attribute that the readers use departs from docs/schema.md: ``n_frames`` the
+    ``n_frames`` frames of /tracks/xy, ``width`` and ``height`` (both or neither) whole numbers above 0, ``fps`` a
+    finite number >= 0, ``input`` and ``config`` strings. Each may be absent (a file written by hand)."""
     def whole(value: Any) -> bool:
         return isinstance(value, numbers.Integral) and not isinstance(value, (bool, np.bool_))
 
     if "n_frames" in meta and not (whole(meta["n_frames"]) and meta["n_frames"] >= 0):
         raise ValueError(f"root attribute 'n_frames' is {plain(meta['n_frames'])}, not a whole number of frames")
+    if "n_frames" in meta and meta["n_frames"] != n_frames:
+        raise ValueError(f"root attribute 'n_frames' is {plain(meta['n_frames'])}, but /tracks/xy has "
+                         f"{counted(n_frames, 'frame')}")
     if ("width" in meta) != ("height" in meta):
         raise ValueError(f"root attribute '{'height' if 'width' in meta else 'width'}' is missing beside the other")
     for key in ("width", "height"):
@@ -240,11 +242,6 @@ def _check_attributes(meta: dict[str, Any]) -> None:
     for key in ("input", "config"):
         if key in meta and not isinstance(meta[key], str):
             raise ValueError(f"root attribute '{key}' is {plain(meta[key])}, not a string")
-
-
-def frame_count(tracks: Tracks, meta: dict[str, Any]) -> int:
-    """F of a track file read by :func:`read_tracks`: its ``n_frames`` attribute, else the frames of its tracks."""
-    return int(meta.get("n_frames", tracks.xy.shape[1]))
 
 
 def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
@@ -281,7 +278,7 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
             tracks = Tracks(queries, xy, t["cov"][()], dof, t["visible"][()].astype(bool),
                             file_codes[t["method_code"][()]], z, R, trackability=scores)
             _check_layout(tracks)
-            _check_attributes(meta)
+            _check_attributes(meta, xy.shape[1])
             _check_values(tracks)
         except (KeyError, OSError, RuntimeError, TypeError, ValueError, IndexError) as error:
             # h5py reports damaged metadata as OSError or RuntimeError
@@ -328,7 +325,7 @@ def matched_to_input(tracks: Tracks, meta: dict[str, Any], tracks_path: Path, in
     """
     ours = f"{info.input} has {info.width}x{info.height} px, {counted(info.n_frames, 'frame')}"
     if "width" in meta:
-        theirs = (int(meta["width"]), int(meta["height"]), frame_count(tracks, meta))
+        theirs = (int(meta["width"]), int(meta["height"]), tracks.xy.shape[1])
         if theirs != (info.width, info.height, info.n_frames):
             raise CondtrackError(
                 f"{tracks_path} was tracked on {theirs[0]}x{theirs[1]} px, {counted(theirs[2], 'frame')}, but {ours}"
