@@ -197,6 +197,8 @@ def resolve(raw: Mapping[str, Any]) -> Config:
         raise CondtrackError(
             f"config key 'filter.{key}': unknown key; valid keys: method, smooth, {', '.join(registry.names('filter'))}"
         )
+    if smooth and not registry.get("filter", method).settings.smoother:
+        raise CondtrackError(f"config key 'filter.smooth': method {method!r} has no smoother")
     output = _validate("output", OutputSettings, _section(raw.get("output")))
     return Config(stages=stages, method=method, filters=filters, output=output, smooth=smooth)
 

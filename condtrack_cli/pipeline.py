@@ -222,8 +222,6 @@ def _track_frames(frames: Iterable[np.ndarray], info: SequenceInfo, config: Conf
             raise CondtrackError(f"{info.input}: no trackable point detected on frame 0")
     tracker = build_tracker(config, queries, info, np.random.default_rng(seed), motion)
     scorer = QueryScorer(queries, trackability_settings(config.stage("detect").settings)[0])
-    if config.smooth and not tracker.smoother:
-        raise CondtrackError(f"config key 'filter.smooth': method {config.method!r} has no smoother")
     # the pair k-1 -> k moves when a point was started before k
     moving_from = int(queries.frame.min()) + 1 if tracker.needs_motion and len(queries) else math.inf
     ahead = moving_from < math.inf and threads_in_use()["opencv"] > 1

@@ -39,7 +39,9 @@ class StageSettings(BaseModel):
     settings only) is False for a filter that writes no covariance (NaN), as
     STK: ``output.max_std`` then changes nothing. ``stage_kinds`` (a filter's settings only) names the stage kinds
     whose settings it reads (STK measures by its own Lucas-Kanade: neither ``motion`` nor ``measure``), so that only
-    their windows must fit the frame. ``unbounded_floats`` names the float fields that only compare
+    their windows must fit the frame. ``smoother`` (a filter's settings only) names the two-way smoother its tracker's
+    ``smooth`` runs, "" when it has none: ``filter.smooth`` is then refused when the config is read, before any
+    input is opened or output made. ``unbounded_floats`` names the float fields that only compare
     (a threshold such as ``output.max_std``, where 1e16 means "never"), exempt from ``MAX_FLOAT_SETTING``;
     ``odd_fields`` the integer fields that must be odd (patch sides with a centre pixel; null passes).
     """
@@ -49,6 +51,7 @@ class StageSettings(BaseModel):
     filter_sections: ClassVar[tuple[str, ...]] = ()
     covariance: ClassVar[bool] = True
     stage_kinds: ClassVar[tuple[str, ...]] = ("motion", "measure")
+    smoother: ClassVar[str] = ""
     unbounded_floats: ClassVar[tuple[str, ...]] = ()
     odd_fields: ClassVar[tuple[str, ...]] = ()
 

@@ -201,3 +201,22 @@ def test_smooth_flag_is_recorded_in_the_hdf5_and_refused_for_a_method_without_sm
 def test_filter_smooth_must_be_a_boolean():
     with pytest.raises(CondtrackError, match="filter.smooth"):
         load_config({"filter": {"smooth": "yes"}})
+
+
+@pytest.mark.parametrize("method", ["stk", "mdr"])
+def test_smooth_without_a_smoother_is_refused_before_any_input_is_read_or_output_made(tmp_path, method):
+    """--smooth with a method that has no smoother was refused only once the first frame was tracked: a batch made
+    OUT_DIR and failed each input in turn, and an unreadable input was reported instead of the option. It is now
+    refused when the config is read, by the command line, a batch and ct.track alike."""
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    (broken / "0.png").write_bytes(b"not a png")
+    said = f"config key 'filter.smooth': method '{method}' has no smoother"
+    out_dir = tmp_path / "out"
+    result = subprocess.run(
+        [sys.executable, "-c", "from condtrack_cli.cli import main; main()", "track", str(broken), str(SAMPLES / "ring"),
+         "-m", method, "--smooth", "--out-dir", str(out_dir), "-q"], capture_output=True, text=True, timeout=300,
+    )
+    assert (result.returncode, result.stderr) == (1, f"Error: {said}\n") and not out_dir.exists()
+    with pytest.raises(CondtrackError, match=f"^{said}$"):
+        ct.track(broken, config={"filter": {"method": method, "smooth": True}})

@@ -202,7 +202,6 @@ class AutoTracker(Tracker):
     """Routes points between a CLF and a CNLF that share their reference patches."""
 
     method = "cnlf"
-    smoother = "rts+ffbsm"
     needs_motion = True
     needs_local_motion = True
 

@@ -24,7 +24,6 @@ class Tracker:
     """Base of all filters; subclasses set ``method`` and implement ``_start``/``_advance``."""
 
     method: str = ""
-    smoother: str = ""  #: name of the two-way smoother :meth:`smooth` runs ("" when the filter has none)
     needs_motion: bool = False  #: :meth:`step` wants the global fit of each frame pair
     needs_local_motion: bool = False  #: :meth:`step` wants the local field of each frame pair too
 
@@ -96,7 +95,8 @@ class Tracker:
         raise NotImplementedError
 
     def smooth(self, tracks: Tracks) -> Tracks:
-        """``tracks`` (from :meth:`finish`) with xy and cov smoothed over the whole pass (``filter.smooth``)."""
+        """``tracks`` (from :meth:`finish`) with xy and cov smoothed over the whole pass (``filter.smooth``, taken only
+        by a filter whose settings name their ``smoother``)."""
         raise NotImplementedError(f"{self.method} has no smoother")
 
     def finish(self, history: FrameReports) -> Tracks:

@@ -132,7 +132,6 @@ class CLFTracker(MDRTracker):
     """CLF: MDR's prediction corrected by the SSD measurement with R_k from the surface."""
 
     method = "clf"
-    smoother = "rts"
 
     def __init__(self, settings: CLFSettings, queries: Queries, info: SequenceInfo, state_noise: StateNoise,
                  reference: ReferenceMatcher, errors: ErrorModel, smooth: bool):

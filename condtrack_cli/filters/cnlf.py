@@ -147,7 +147,6 @@ class CNLFTracker(Tracker):
     """Particle filter with the optimal proposal, vectorised over points and particles: arrays (P, N, ...)."""
 
     method = "cnlf"
-    smoother = "ffbsm"
     needs_motion = True
     needs_local_motion = True
 

@@ -34,7 +34,6 @@ class Tracker(Protocol):
     """A filter tracking P points through one pass."""
 
     method: str  #: the method whose code (``registry.method_code``) its rows carry; a router's rows carry its members' codes
-    smoother: str  #: name of the two-way smoother ``smooth`` runs ("" when the filter has none)
     #: ``step`` wants the global fit of each frame pair; read once, when the tracker is built (the motion
     #: of a pair may be estimated before the filter steps the pair's first frame)
     needs_motion: bool
@@ -52,7 +51,8 @@ class Tracker(Protocol):
         """The pass's (P, F, ...) tracks from the F per-frame reports."""
 
     def smooth(self, tracks: Tracks) -> Tracks:
-        """``tracks`` (from ``finish``) with xy and cov smoothed over the whole pass (``filter.smooth``)."""
+        """``tracks`` (from ``finish``) with xy and cov smoothed over the whole pass (``filter.smooth``; called only
+        when the filter's settings model names its ``smoother``, ``StageSettings``)."""
 
 
 class FilterFactory(Protocol):

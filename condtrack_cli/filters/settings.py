@@ -94,6 +94,7 @@ class STKSettings(StageSettings):
 class CLFSettings(MeasuredFilterSettings):
     """The CLF's settings: those of every filter that measures a reference patch, and its dynamics."""
 
+    smoother = "rts"
     dynamics: Literal["select", "local", "global"] = Field(
         "select",
         description="motion predicting the gate: global (paper's CLF), local (window around the point) or select (per point)",
@@ -118,6 +119,7 @@ class MDRSettings(InitialStateSettings):
 
 
 class CNLFSettings(MeasuredFilterSettings):
+    smoother = "ffbsm"
     particles: int = Field(100, ge=1, le=10000, description="particles per point (the paper's N = 100)")
     ess_fraction: float = Field(0.5, gt=0, le=1, description="resample when the effective sample size falls below this x N")
     resampling: Literal["systematic", "residual"] = Field("systematic", description="resampling scheme")
@@ -136,6 +138,7 @@ class CNLFSettings(MeasuredFilterSettings):
 
 class AutoSettings(StageSettings):
     filter_sections = ("clf", "cnlf")
+    smoother = "rts+ffbsm"
     integration_frames: int = Field(3, ge=1, description="frames over which a point's evidence is averaged")
     evidence_margin: float = Field(
         1.0, ge=0, description="change filter when the averaged evidence passes +- this (half squared Mahalanobis units)"
