@@ -95,7 +95,9 @@ def test_a_redo_that_cannot_give_the_batch_s_output_name_says_so(tmp_path):
         "inputs not run yet); redo with that list and --skip-existing"]
 
 
-def test_all_done_exits_0_and_a_folder_without_manifest_is_an_error(tmp_path):
+def test_all_done_exits_0_and_a_folder_without_manifest_is_an_error(tmp_path, monkeypatch, capsys):
+    """A missing OUT_DIR gave Click's usage line and 'Directory ... does not exist', where every other command names a
+    missing input in one Error: line (README, Exit codes); it is now that line."""
     record(tmp_path, "a", "ok", 1.0)
     (tmp_path / "a_frames.h5").write_bytes(b"")
     done = status(str(tmp_path))
@@ -104,8 +106,8 @@ def test_all_done_exits_0_and_a_folder_without_manifest_is_an_error(tmp_path):
     empty.mkdir()
     result = status(str(empty))  # main() prints it as one Error: line, exit 2 (README, Exit codes)
     assert isinstance(result.exception, MissingInput) and "manifest.jsonl: no manifest records" in str(result.exception)
-    result = status(str(tmp_path / "nowhere"))
-    assert result.exit_code == 2 and "does not exist" in result.output
+    assert _main(["status", str(tmp_path / "nowhere")], monkeypatch, capsys) == (
+        2, "", f"Error: {tmp_path / 'nowhere'}: no such folder\n")
 
 
 def _main(args: list[str], monkeypatch, capsys) -> tuple[int, str, str]:

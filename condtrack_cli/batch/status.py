@@ -82,8 +82,11 @@ def input_identity(record: dict) -> str:
 
 
 def batch_status(out_dir: str | Path) -> BatchStatus:
-    """Read ``out_dir``'s manifest into a :class:`BatchStatus`; CondtrackError without one or with a broken line."""
+    """Read ``out_dir``'s manifest into a :class:`BatchStatus`; CondtrackError without one or with a broken line
+    (MissingInput without the folder or a record)."""
     out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise MissingInput(f"{out_dir}: no such folder")
     records = read_manifest(out_dir, STATUS_FIELDS)
     if not records:
         raise MissingInput(f"{out_dir / MANIFEST}: no manifest records (not a batch's --out-dir?)")

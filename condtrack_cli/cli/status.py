@@ -9,7 +9,7 @@ import click
 
 
 @click.command("status")
-@click.argument("out_dir", metavar="OUT_DIR", type=click.Path(exists=True, file_okay=False))
+@click.argument("out_dir", metavar="OUT_DIR", type=click.Path(file_okay=False))
 @click.option("--json", "as_json", is_flag=True, help="Print the status as JSON (for scripts).")
 def status_command(out_dir: str, as_json: bool) -> None:
     """Show what became of each input of the batch written into OUT_DIR (its manifest.jsonl).
