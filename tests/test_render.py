@@ -37,14 +37,14 @@ def frames_folder(tmp_path):
     return folder
 
 
-def make_tracks() -> Tracks:
-    """4 points over 8 frames: finite, NaN and infinite covariances, hidden frames, methods clf and stk.
+def make_tracks(f: int = N_FRAMES) -> Tracks:
+    """4 points over ``f`` (8) frames: finite, NaN and infinite covariances, hidden frames, methods clf and stk.
 
     Point 0 (clf) moves right from (20, 20), visible, finite cov; point 1 (clf) at (70, 40),
     not visible on frames 3-5 where its cov is infinite; point 2 (stk) at (40, 50), NaN cov;
     point 3 (stk) starts on frame 2 at (80, 15).
     """
-    p, f = 4, N_FRAMES
+    p = 4
     k = np.arange(f)
     xy = np.full((p, f, 2), np.nan)
     xy[0] = np.column_stack([20 + 1.5 * k, np.full(f, 20.0)])
@@ -68,7 +68,7 @@ def make_tracks() -> Tracks:
 def write_h5(path, width=WIDTH, height=HEIGHT, n_frames=N_FRAMES):
     info = SequenceInfo("frames", width, height, n_frames, 0.0)
     meta = {"config": CONFIG, "method": "clf", "seed": 0}
-    write_tracks(make_tracks(), path, info, meta=meta, settings=OutputSettings())
+    write_tracks(make_tracks(n_frames), path, info, meta=meta, settings=OutputSettings())
     return path
 
 

@@ -346,6 +346,17 @@ def test_an_hdf5_whose_root_attributes_depart_from_the_schema_is_refused(tmp_pat
         ct.read_tracks(path)
 
 
+@pytest.mark.parametrize("name", ["t.h5", "t.csv"])
+def test_tracks_of_another_frame_count_than_their_input_are_not_written(tmp_path, name):
+    """write_tracks wrote an HDF5 file whose n_frames (the input's) disagreed with its /tracks/xy, which the readers
+    refuse as damaged; tracks and input that disagree are now an error naming both counts, and nothing is written."""
+    path = tmp_path / name
+    with pytest.raises(CondtrackError, match=rf"^{re.escape(str(path))}: not written: the tracks have {F} frames, but "
+                                             rf"frames/ has {F + 1} frames$"):
+        write_tracks(small_tracks(), path, SequenceInfo("frames/", 64, 48, F + 1, 0.0), TRACK_META, OutputSettings())
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_an_hdf5_without_n_frames_has_the_frames_of_its_tracks(tmp_path):
     """ct.read_tracks and render of a file written without the n_frames attribute (by hand, as eval reads one) ended in
     a KeyError traceback; its frame count is now that of /tracks/xy."""

@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from condtrack_cli import COORDINATES, SCHEMA_VERSION, __version__
-from condtrack_cli.errors import write_error
+from condtrack_cli.errors import CondtrackError, counted, write_error
 from condtrack_cli.io.atomic import atomic_path
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.interface import OutputSettings
@@ -124,8 +124,14 @@ EXTRA_ATTRIBUTES = {
 }
 
 def write_tracks(tracks: Tracks, path: str | Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
-    """Write ``tracks`` to ``path`` (.csv, .h5 or .hdf5), atomically: the file is whole or absent (a full disk included)."""
+    """Write ``tracks`` to ``path`` (.csv, .h5 or .hdf5), atomically: the file is whole or absent (a full disk included).
+
+    CondtrackError, nothing written, when the F frames of ``tracks`` are not the ``info.n_frames`` of the input: the
+    HDF5 file's ``n_frames`` would disagree with its /tracks/xy, which the readers refuse."""
     path = Path(path)
+    if tracks.xy.shape[1] != info.n_frames:
+        raise CondtrackError(f"{path}: not written: the tracks have {counted(tracks.xy.shape[1], 'frame')}, but "
+                             f"{info.input or 'their input'} has {counted(info.n_frames, 'frame')}")
     writer = get("output", track_format(path, "output")).factory
     with atomic_path(path) as temporary:
         try:
