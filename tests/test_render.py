@@ -10,7 +10,7 @@ from click.testing import CliRunner
 from condtrack_cli import SCHEMA_VERSION
 from condtrack_cli import render
 from condtrack_cli.cli import cli
-from condtrack_cli.cli.info import info_command
+from condtrack_cli.cli.info import _distribution, info_command
 from condtrack_cli.cli.render import render_command
 from condtrack_cli.errors import CondtrackError, CondtrackWarning
 from condtrack_cli.config import load_config
@@ -300,6 +300,13 @@ def test_info_prints_what_the_file_holds(tmp_path):
     assert "measurements:      stored" in out and "particles:         not stored" in out
     assert "method:            clf" in out and "seed:              0" in out
     assert out.endswith("config (resolved):\n" + "".join(f"  {line}\n" for line in CONFIG.splitlines()))
+
+
+def test_info_never_prints_a_dof_of_two():
+    """The schema's nu is above 2: a smallest or median dof of 2.0022 reads '2.002', not '2' (issue 45's probe)."""
+    line = _distribution(np.array([2.0022, 2.0022, 2.0022, 5.0, 2000.0, np.inf]))
+    assert line == "Student-t per row, dof 2.002 .. 2e+03 (median 2.002) on 83.3% of rows, Gaussian elsewhere"
+    assert _distribution(np.array([2.0 + 1e-9, 3.0])).startswith("Student-t per row, dof 2.000000001 .. 3 (median 2.5)")
 
 
 def test_info_refuses_a_bad_file_naming_it(tmp_path):

@@ -65,4 +65,14 @@ def _distribution(dof) -> str:
     if not student.size:
         return "Gaussian (dof inf)" if dof.size else "n/a"
     share = "" if student.size == dof.size else f" on {student.size / dof.size:.1%} of rows, Gaussian elsewhere"
-    return f"Student-t per row, dof {student.min():.3g} .. {student.max():.3g} (median {np.median(student):.3g}){share}"
+    return (f"Student-t per row, dof {_above_two(student.min())} .. {student.max():.3g} "
+            f"(median {_above_two(np.median(student))}){share}")
+
+
+def _above_two(dof: float) -> str:
+    """``dof`` (> 2) to 3 significant digits, more where fewer would read as 2 or less (the schema's nu > 2: 2.0022
+    is '2.002', not '2')."""
+    digits = 3
+    while float(f"{dof:.{digits}g}") <= 2 and digits < 17:
+        digits += 1
+    return f"{dof:.{digits}g}"
