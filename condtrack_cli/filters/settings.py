@@ -141,7 +141,7 @@ class AutoSettings(StageSettings):
     smoother = "rts+ffbsm"
     integration_frames: int = Field(3, ge=1, description="frames over which a point's evidence is averaged")
     evidence_margin: float = Field(
-        1.0, ge=0, description="change filter when the averaged evidence passes +- this (half squared Mahalanobis units)"
+        0.5, ge=0, description="change filter when the averaged evidence passes +- this (half squared Mahalanobis units)"
     )
     lost_evidence: float = Field(
         0.5, ge=0,
