@@ -42,7 +42,7 @@ import numpy as np
 from condtrack_cli import registry
 from condtrack_cli.config import Config
 from condtrack_cli.detect.trackability import Aperture, QueryScorer, trackability_settings
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, counted
 from condtrack_cli.filters.gauss2 import symmetrize
 from condtrack_cli.filters.interface import Tracker
 from condtrack_cli.frame_reports import FrameReports, FrameStore, park, temporary_folder
@@ -104,16 +104,27 @@ def run(
     """
     last = backward_start(config, queries)
     if last == 0:
-        return run_pass(source, info, config, queries, seed, on_frame)
+        return _whole(run_pass(source, info, config, queries, seed, on_frame), info)
     with temporary_folder() as folder:
         store = FrameStore(Path(folder) / "frames.u8", last)
-        forward = run_pass(store.keeping(source), info, config, queries, seed, on_frame)
+        forward = _whole(run_pass(store.keeping(source), info, config, queries, seed, on_frame), info)
         forward = park(forward, Path(folder))  # waits on disk while the backward pass runs (memory flat in length)
         mirrored = Queries(queries.point_id, last - queries.frame, queries.xy)
         backward = run_pass(store.reversed(), info, config, mirrored, seed + 1, on_frame)
         merged = merge_backward(forward, backward)
         del forward  # the memory maps go before their files
     return merged
+
+
+def _whole(forward: Tracks, info: SequenceInfo) -> Tracks:
+    """The forward pass's ``forward`` tracks; CondtrackError where the input gave fewer frames than ``info.n_frames``,
+    counted when it was opened (a video whose decoding stops earlier on the second reading: a damaged file, or one
+    that changed while it was read)."""
+    read = forward.xy.shape[1]
+    if read != info.n_frames:
+        raise CondtrackError(f"{info.input}: {counted(info.n_frames, 'frame')} when it was opened, but reading stopped "
+                             f"after {read} (a damaged file, or one that changed while it was read?)")
+    return forward
 
 
 def backward_start(config: Config, queries: Queries | None) -> int:

@@ -48,3 +48,18 @@ def test_forward_only_keeps_the_forward_rows_and_leaves_the_earlier_frames_empty
     assert ahead.config.output.backward is False and "backward: false" in ahead.attributes["config"]
     with pytest.raises(TypeError, match="forward_only"):
         ct.track(source.info.input, rows, method="stk", forward_only="yes")
+
+
+@pytest.mark.parametrize("query_frame", [0, 3])
+def test_an_input_that_stops_short_of_its_counted_frames_is_an_error_naming_both(query_frame):
+    """A video counted at 30 frames when opened but decoded to 8 on the reading (a damaged file, one that changed
+    while it was read) is an error naming both counts, before a backward pass or a written file; before, its 8-frame
+    tracks were written under the 30-frame count (a file the readers refuse)."""
+    from condtrack_cli.errors import CondtrackError
+
+    source, _, truth = sample_inputs("occlusion")
+    short = [image for _, image in zip(range(8), source)]
+    seen = np.flatnonzero(truth.visible[:, query_frame])[:4]
+    queries = Queries(truth.point_id[seen], np.full(seen.size, query_frame), truth.gt_xy[seen, query_frame])
+    with pytest.raises(CondtrackError, match=r"30 frames when it was opened, but reading stopped after 8 "):
+        pipeline.run(short, source.info, load_config(None, method="clf"), queries)
