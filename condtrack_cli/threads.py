@@ -37,7 +37,7 @@ def threads_from_environment() -> int | None:
     text = os.environ.get(THREADS_ENV, "").strip()
     if not text:
         return None
-    if not text.isdigit() or int(text) < 1:
+    if not text.isdecimal() or int(text) < 1:
         raise ValueError(f"{THREADS_ENV}={text!r}: expected a positive integer")
     return int(text)
 

@@ -79,7 +79,7 @@ def test_shards_cover_every_input_once():
     parts = [shard(items, i, 3) for i in range(3)]
     assert sorted(sum(parts, [])) == items and [len(p) for p in parts] == [4, 4, 3]
     assert parse_shard("2/3") == (2, 3)
-    for bad in ("3/3", "-1/3", "1", "a/b", "0/0"):
+    for bad in ("3/3", "-1/3", "1", "a/b", "0/0", "\u00b2/3"):  # "²" is a digit to str.isdigit, not to int()
         with pytest.raises(ValueError, match="expected I/N"):
             parse_shard(bad)
 
@@ -472,6 +472,14 @@ def test_more_threads_than_cores_are_capped_with_a_warning(clips, tmp_path):
                      env={**{k: v for k, v in os.environ.items() if k != "OMP_NUM_THREADS"}, "CONDTRACK_THREADS": "100000"})
     assert result.returncode == 0 and "warning: 100000 threads exceeds the 1 core: using 1 thread\n" in result.stderr
     assert manifest(tmp_path / "d")[0]["threads"] == {"opencv": 1, "omp": ""}
+
+
+def test_a_threads_variable_of_a_non_decimal_digit_is_refused_naming_it(monkeypatch):
+    """CONDTRACK_THREADS="²" passed str.isdigit and failed int(): "Error: invalid literal for int()", not naming it."""
+    from condtrack_cli.threads import threads_from_environment
+    monkeypatch.setenv("CONDTRACK_THREADS", "\u00b2")
+    with pytest.raises(ValueError, match="CONDTRACK_THREADS='\u00b2': expected a positive integer"):
+        threads_from_environment()
 
 
 def test_a_batch_output_that_is_the_queries_file_is_refused_before_work(clips, tmp_path):

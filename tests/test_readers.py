@@ -53,6 +53,7 @@ def test_folder_and_lossless_video_give_the_same_frames(folder_and_video):
 def test_natural_sort(tmp_path):
     names = ["frame10.png", "frame2.png", "frame1.png"]
     assert sorted(names, key=natural_key) == ["frame1.png", "frame2.png", "frame10.png"]
+    assert natural_key("1\u00b22.png") == ["", 1, "\u00b2", 2, ".png"]  # "²": str.isdigit's, not int()'s (a traceback)
     for k, name in enumerate(names):
         cv2.imwrite(str(tmp_path / name), np.full((8, 8), 10 * k, np.uint8))
     source = open_frames(FrameSettings(), tmp_path)

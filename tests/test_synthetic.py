@@ -239,6 +239,8 @@ def test_command_line_writes_samples_and_single_scenes(tmp_path):
     assert len(list((tmp_path / "fast").glob("*.png"))) == 5
     result = runner.invoke(cli, ["synth", str(tmp_path / "bad"), "--scene", "fast", "--size", "10x10"])
     assert result.exit_code == 2 and "size 10x10 is too small" in result.output
+    result = runner.invoke(cli, ["synth", str(tmp_path / "bad"), "--scene", "fast", "--size", "64\u00b2x64"])
+    assert result.exit_code == 2 and "expected WIDTHxHEIGHT, got '64\u00b2x64'" in result.output
 
 
 def test_unknown_scene_lists_the_valid_names():

@@ -70,7 +70,7 @@ def output_names(inputs: list[str]) -> list[str]:
 def parse_shard(text: str) -> tuple[int, int]:
     """``"I/N"`` -> (I, N) with 0 <= I < N; ValueError otherwise."""
     index, sep, count = text.partition("/")
-    if not (sep and index.strip().isdigit() and count.strip().isdigit()) or not 0 <= int(index) < int(count):
+    if not (sep and index.strip().isdecimal() and count.strip().isdecimal()) or not 0 <= int(index) < int(count):
         raise ValueError(f"expected I/N with 0 <= I < N (e.g. 0/4), got {text!r}")
     return int(index), int(count)
 

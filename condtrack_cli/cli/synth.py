@@ -22,7 +22,7 @@ class _Size(click.ParamType):
 
     def convert(self, value, param, ctx) -> tuple[int, int]:
         width, sep, height = value.partition("x")
-        if not (sep and width.isdigit() and height.isdigit()):
+        if not (sep and width.isdecimal() and height.isdecimal()):
             self.fail(f"expected WIDTHxHEIGHT, got {value!r}", param, ctx)
         return int(width), int(height)
 

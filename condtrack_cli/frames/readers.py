@@ -58,7 +58,7 @@ NARROW_16BIT = 4096
 
 def natural_key(name: str) -> list:
     """Sort key putting ``frame2`` before ``frame10``."""
-    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", name)]
+    return [int(part) if part.isdecimal() else part.lower() for part in re.split(r"(\d+)", name)]
 
 
 def to_gray8(image: np.ndarray, where: str, bit_depth: int = 16) -> np.ndarray:
