@@ -89,7 +89,11 @@ def queries_from_rows(rows: np.ndarray, info: SequenceInfo) -> Queries:
     if np.ma.is_masked(rows):  # np.asarray would keep the values under the mask and track them
         row = int(np.flatnonzero(np.ma.getmaskarray(rows).reshape(len(rows), -1).any(axis=1))[0])
         raise InvalidArgument(f"queries: row {row} is masked; give the rows to track (e.g. rows[~rows.mask.any(axis=1)])")
-    given = np.asarray(rows)
+    try:
+        given = np.asarray(rows)
+    except ValueError:  # rows of different lengths: numpy's "inhomogeneous shape", not a shape to report
+        raise InvalidArgument("queries: expected a non-empty (N, 3) array of frame, x, y; got rows of different "
+                              "lengths") from None
     if given.dtype.kind not in "iuf":
         raise InvalidArgumentType(f"queries: expected an (N, 3) array of numbers frame, x, y; got dtype {given.dtype}")
     rows = given.astype(np.float64)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from condtrack_cli.errors import CondtrackError
+from condtrack_cli.errors import CondtrackError, InvalidArgument
 from condtrack_cli.queries import queries_from_rows, read_queries
 from condtrack_cli.types import SequenceInfo
 
@@ -70,6 +70,13 @@ def test_an_array_s_frame_beyond_int64_is_refused_with_its_own_value(frame, show
     with pytest.raises(CondtrackError, match=rf"^queries: row 1: frame {shown} is outside the sequence \(0\.\.9\)$"):
         queries_from_rows(np.array([[0, 1.0, 2.0], [frame, 1.0, 2.0]]), INFO)
     assert queries_from_rows(np.array([[9, 1.0, 2.0]], dtype=np.float32), INFO).frame.dtype == np.int64
+
+
+def test_query_rows_of_different_lengths_are_an_invalid_argument():
+    """A list of rows of 3 and 2 values reached the caller as numpy's bare ValueError ("inhomogeneous shape")."""
+    with pytest.raises(InvalidArgument, match=r"^queries: expected a non-empty \(N, 3\) array of frame, x, y; got rows "
+                                              r"of different lengths$"):
+        queries_from_rows([[0, 1.0, 2.0], [0, 1.0]], INFO)
 
 
 @pytest.mark.parametrize("text, message", [
