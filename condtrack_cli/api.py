@@ -240,7 +240,7 @@ def track(
     ((209, 30, 2), (1, 30), (30, 30))
     """
     check_path("source", source)
-    progress, forward_only = python_value(progress), python_value(forward_only)  # np.bool_(True) is True
+    progress, forward_only, method = map(python_value, (progress, forward_only, method))  # np.bool_(True) is True
     if not (isinstance(progress, bool) or callable(progress)):
         raise InvalidArgumentType(f"progress: expected True, False or a callable(done, total), got {type(progress).__name__}")
     if untrackable is not None and not isinstance(untrackable, str):

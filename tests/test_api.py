@@ -198,6 +198,16 @@ def test_numpy_booleans_are_taken_for_forward_only_and_progress():
     assert given.config == expected.config
 
 
+def test_a_method_read_from_tracks_is_taken_as_its_name():
+    """method=t.method[0], a numpy string (np.str_('stk')), ended in yaml's bare RepresenterError "cannot represent an
+    object" when the config was resolved; now it is the method 'stk'."""
+    source, queries = str(SAMPLES / "ring"), np.array([[0, 40.0, 40.0]])
+    first = ct.track(source, queries=queries, method="stk")
+    again = ct.track(source, queries=queries, method=first.method[0])
+    assert type(first.method[0]) is np.str_ and again.config == first.config
+    assert np.array_equal(again.xy, first.xy, equal_nan=True)
+
+
 def test_a_numpy_integer_seed_writes_the_file_a_plain_seed_writes(tmp_path):
     """seed=np.int32(3) or np.uint8(3) wrote the HDF5 root attribute ``seed`` as int32 or uint8 (docs/schema.md: int64),
     so the file differed byte for byte from ``--seed 3``'s; now the seed is the int it holds, the file the same."""
