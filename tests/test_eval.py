@@ -279,6 +279,18 @@ def test_load_gt_tapvid_refuses_several_videos_and_bad_files(tmp_path):
         load_gt_tapvid(tmp_path / "junk.pkl")
 
 
+def test_load_gt_tapvid_refuses_decoded_frames_of_unequal_sizes(tmp_path):
+    """A 'video' listing decoded frames of two sizes ended in numpy's bare ValueError ("inhomogeneous shape") when its
+    frame size was read; now the error every other unreadable 'video' gets."""
+    video = tapvid_video()
+    video["video"] = [np.zeros((6, 8, 3), np.uint8), np.zeros((5, 7, 3), np.uint8), np.zeros((6, 8, 3), np.uint8)]
+    with pytest.raises(CondtrackError, match=r"gt.pkl: 'video' is neither an \(F, H, W, 3\) array nor a list of encoded "
+                                             r"frames$"):
+        load_gt_tapvid(dump(tmp_path / "gt.pkl", video))
+    video["video"] = [np.zeros((6, 8, 3), np.uint8)] * 3  # decoded frames of one size: an (F, H, W, 3) array
+    assert load_gt_tapvid(dump(tmp_path / "gt.pkl", video)).gt_xy.shape == (2, 3, 2)
+
+
 @pytest.mark.parametrize("value", [np.nan, np.inf])
 def test_load_gt_tapvid_refuses_a_visible_point_without_finite_coordinates(tmp_path, value):
     """A NaN or inf on a visible frame was read and skewed the scores (and showed as a non-finite predicted

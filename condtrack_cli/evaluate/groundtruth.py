@@ -204,9 +204,13 @@ def _frame_size(video: object, path: Path) -> tuple[int, int]:
         image = cv2.imdecode(np.frombuffer(first, np.uint8), cv2.IMREAD_UNCHANGED)
         if image is not None:
             return int(image.shape[1]), int(image.shape[0])
-    elif np.ndim(video) == 4:
-        shape = np.shape(video)
-        return int(shape[2]), int(shape[1])
+    else:
+        try:
+            shape = np.shape(video)
+        except ValueError:  # a list of frames of unequal sizes: numpy's "inhomogeneous shape"
+            shape = ()
+        if len(shape) == 4:
+            return int(shape[2]), int(shape[1])
     raise CondtrackError(f"{path}: 'video' is neither an (F, H, W, 3) array nor a list of encoded frames")
 
 
