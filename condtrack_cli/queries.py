@@ -103,7 +103,8 @@ def queries_from_rows(rows: np.ndarray, info: SequenceInfo) -> Queries:
         row = int(np.argmax(~np.isfinite(rows).all(axis=1) | (rows[:, 0] != np.round(rows[:, 0]))))
         raise CondtrackError(f"queries: row {row}: frame must be a whole number and x, y finite")
     index = np.arange(len(rows), dtype=np.int64)
-    return checked_queries("queries", index, rows[:, 0], rows[:, 1:], info, index)
+    frame = given[:, 0] if given.dtype.kind in "iu" else rows[:, 0]  # an integer frame as given: float64 rounds 2^53 + 1
+    return checked_queries("queries", index, frame, rows[:, 1:], info, index)
 
 
 def checked_queries(where: str, point_id: np.ndarray, frame: np.ndarray, xy: np.ndarray, info: SequenceInfo,

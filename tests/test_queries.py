@@ -79,6 +79,16 @@ def test_query_rows_of_different_lengths_are_an_invalid_argument():
         queries_from_rows([[0, 1.0, 2.0], [0, 1.0]], INFO)
 
 
+@pytest.mark.parametrize("dtype, frame", [(np.int64, 2**53 + 1), (np.int64, 2**63 - 1), (np.uint64, 2**64 - 1)])
+def test_an_integer_array_s_frame_outside_the_sequence_is_named_as_given(dtype, frame):
+    """An integer array's frame was named after its cast to float64: 2^63 - 1 as 9223372036854775808, 2^53 + 1 as
+    9007199254740992, a frame the array does not hold; now its own value."""
+    rows = np.array([[0, 1, 2], [frame, 1, 2]], dtype=dtype)
+    with pytest.raises(CondtrackError, match=rf"^queries: row 1: frame {frame} is outside the sequence \(0\.\.9\)$"):
+        queries_from_rows(rows, INFO)
+    assert queries_from_rows(np.array([[9, 1, 2]], dtype=dtype), INFO).frame.tolist() == [9]
+
+
 @pytest.mark.parametrize("text, message", [
     ("frame,x,y\n\n\n0,4,abc\n", r"row 4, column 'y': 'abc' is not a number"),
     ("frame,x,y\n0,4,5\n\n0,4,5,7\n", r"row 4 has 4 fields, the header 3"),
