@@ -693,14 +693,27 @@ def test_cli_plot_writes_png(files, tmp_path):
 
 def test_cli_plot_into_the_frame_folder_of_the_truth_is_refused(files, tmp_path):
     """`eval t.h5 CLIP/tracks.csv --plot CLIP/plot.png` wrote the picture among CLIP's frames: the next `track CLIP`
-    read it as one more frame. A picture in GT's folder, where that folder holds images, is refused before any work."""
+    read it as one more frame. A picture in GT's folder, where that folder holds as many images as GT has frames, is
+    refused before the plot is drawn."""
     pred, gt = files
-    cv2.imwrite(str(gt.parent / "00000.png"), np.zeros((8, 8), np.uint8))  # GT's folder is a frame folder
+    for k in range(len(gt_xy()[0])):  # GT's folder is its sequence's frame folder
+        cv2.imwrite(str(gt.parent / f"{k:05d}.png"), np.zeros((8, 8), np.uint8))
     out = gt.parent / "plot.png"
     result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--plot", str(out)])
     assert result.exit_code != 0 and not out.exists()
     assert str(result.exception) == (f"--plot {out}: an image in the frame folder of GT {gt.parent}; writing it would "
                                      "replace or add a frame of the input")
+
+
+def test_cli_plots_again_into_a_working_folder_that_holds_the_truth(files, tmp_path):
+    """A working folder holding the GT CSV and the plots of earlier runs is not a frame folder: a second `eval --plot`
+    there is drawn (probe helper round 12: it was refused once the first plot had made the folder hold an image)."""
+    pytest.importorskip("matplotlib")
+    pred, gt = files
+    for name in ("cal.png", "cal2.png"):
+        result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--plot", str(gt.parent / name)])
+        assert result.exit_code == 0, result.output
+        assert (gt.parent / name).stat().st_size > 0
 
 
 def test_cli_plot_without_matplotlib_is_one_error_line(files, tmp_path, monkeypatch):

@@ -93,8 +93,8 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
     from condtrack_cli.io.atomic import refuse_overwriting_inputs
     from condtrack_cli.io.read import read_tracks
 
-    refuse_overwriting_inputs({"--plot": plot_path}, {"of GT": _frame_folder(Path(gt).parent)})
     truth = _GT_READERS[gt_format](gt)
+    refuse_overwriting_inputs({"--plot": plot_path}, {"of GT": _frame_folder(Path(gt).parent, truth.gt_xy.shape[1])})
     tracks, _ = read_tracks(pred)
     result, data = score_tracks(tracks, truth, query_mode)
     if plot_path is not None:
@@ -118,11 +118,12 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
         _print_table(result, notes, f"{pred} vs {gt}, '{query_mode}' query mode")
 
 
-def _frame_folder(folder: Path) -> Path | None:
-    """``folder`` where it holds image files (GT's folder is a sequence's frame folder: a picture written there would
-    replace or add a frame), else None."""
+def _frame_folder(folder: Path, frames: int) -> Path | None:
+    """``folder`` where it holds at least ``frames`` image files, the GT's frame count (GT's folder is then the
+    sequence's frame folder: a picture written there would replace or add a frame), else None: a working folder that
+    holds the GT CSV and an earlier plot or two is not one."""
     from condtrack_cli.frames.readers import IMAGE_EXTENSIONS  # here: the readers load OpenCV
 
-    if folder.is_dir() and any(path.suffix.lower() in IMAGE_EXTENSIONS for path in folder.iterdir()):
+    if folder.is_dir() and sum(path.suffix.lower() in IMAGE_EXTENSIONS for path in folder.iterdir()) >= frames:
         return folder
     return None
