@@ -205,18 +205,19 @@ def tiff_directories(path: Path) -> tuple[int, bool]:
                 offset = struct.unpack(order + "Q", head[8:16])[0]
             else:
                 return 0, False
+            count, link = struct.Struct(order + count), struct.Struct(order + link)  # the formats above, this file's order
             pages, seen = 0, set()
             while offset and offset not in seen:
                 seen.add(offset)
                 handle.seek(offset)
-                raw = handle.read(struct.calcsize(count))
-                if len(raw) < struct.calcsize(count):
+                raw = handle.read(count.size)
+                if len(raw) < count.size:
                     return pages, True
-                end = offset + len(raw) + struct.unpack(order + count, raw)[0] * entry + struct.calcsize(link)
+                end = offset + count.size + count.unpack(raw)[0] * entry + link.size  # past the next directory's link
                 if end > size:
                     return pages, True
-                handle.seek(end - struct.calcsize(link))
-                pages, offset = pages + 1, struct.unpack(order + link, handle.read(struct.calcsize(link)))[0]
+                handle.seek(end - link.size)
+                pages, offset = pages + 1, link.unpack(handle.read(link.size))[0]
             return (0, False) if offset else (pages, False)
     except OSError:
         return 0, False
