@@ -2,8 +2,9 @@
 
 Every table of measured numbers in README.md, docs/*.md and bench/results.md says where it comes from: its
 section names the commit it was measured at (a hash git knows). The cheap ones are rerun here and compared
-cell by cell: the forward-backward round trip of ``make paper`` on the corridor (docs/paper.md) and the
-summary line of ``condtrack track`` (README.md). bench/results.md holds today's tables, its history apart.
+cell by cell: the forward-backward round trip of ``make paper`` on the corridor (docs/paper.md), the
+summary line of ``condtrack track`` and the failure report of ``condtrack compare`` (README.md).
+bench/results.md holds today's tables, its history apart.
 """
 
 from __future__ import annotations
@@ -145,7 +146,7 @@ def test_the_round_trip_table_holds_every_row_make_paper_prints():
                                                 for method in paper_figures.METHODS)
 
 
-# --- README.md: the summary line -----------------------------------------------------------------------------
+# --- README.md: the summary line and compare's failure report ------------------------------------------------
 
 
 def readme_summary_example() -> tuple[list[str], str]:
@@ -169,6 +170,29 @@ def test_the_readme_summary_line_is_what_its_command_prints(tmp_path, monkeypatc
     expected = re.escape(re.sub(seconds, "SECONDS", shown)).replace("SECONDS", seconds)
     assert re.fullmatch(expected, printed), f"README shows {shown!r}, the command prints {printed!r}"
     assert (tmp_path / "tracks.csv").is_file()
+
+
+def readme_compare_example() -> tuple[list[list[str]], list[str]]:
+    """The README's golden-file commands (track golden.csv, track today.csv, compare) and the lines of its failure
+    example up to its ``...``."""
+    lines = (REPO / "README.md").read_text(encoding="utf-8").splitlines()
+    commands = [shlex.split(line.split("#")[0])[1:] for line in lines
+                if line.startswith("condtrack ") and re.search(r"golden\.csv|today\.csv", line)]
+    start = lines.index("differ: A=golden.csv B=today.csv (64 points, 30 frames)")
+    return commands, lines[start:lines.index("...", start)]
+
+
+def test_the_readme_compare_failure_is_what_its_commands_print(tmp_path, monkeypatch):
+    commands, shown = readme_compare_example()
+    assert [command[0] for command in commands] == ["track", "track", "compare"]
+    (tmp_path / "sample_sequences").symlink_to(SAMPLES)
+    monkeypatch.chdir(tmp_path)
+    commands[1] += ["--set", "measure.search_max=8"]  # the change the example's prose names
+    for command in commands[:2]:
+        assert CliRunner().invoke(cli, command).exit_code == 0
+    result = CliRunner().invoke(cli, commands[2])
+    assert result.exit_code == 1
+    assert result.stdout.splitlines()[:len(shown)] == shown
 
 
 # --- bench/results.md: today's tables, the history apart (issue 47, item 22) ---------------------------------
