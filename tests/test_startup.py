@@ -121,3 +121,13 @@ def test_the_lazy_help_lists_what_the_commands_say():
 def test_an_unknown_command_is_refused():
     result = CliRunner().invoke(cli, ["trak"])
     assert result.exit_code == 2 and "No such command 'trak'" in result.output
+
+
+def test_no_command_shows_the_help_on_stderr():
+    """``condtrack`` alone printed a usage line, then ``Error: Usage: ...`` holding the whole help (Click 8.2's
+    NoArgsIsHelpError read as an error message); now the help alone, on stderr, exit 2, as Click shows it."""
+    done = subprocess.run([sys.executable, "-c", "from condtrack_cli.cli import main; main()"], capture_output=True,
+                          text=True, timeout=300)
+    assert (done.returncode, done.stdout) == (2, "")
+    assert done.stderr.startswith("Usage: condtrack [OPTIONS] COMMAND [ARGS]...\n\n  Batch point tracking")
+    assert "\nCommands:\n" in done.stderr and "Error" not in done.stderr

@@ -53,6 +53,14 @@ class LazyGroup(click.Group):
         module, _, attribute = COMMANDS[name][0].partition(":")
         return getattr(import_module(f"condtrack_cli.cli.{module}"), attribute)
 
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        """No command: the help on stderr and exit 2, as Click 8.2 shows it (its NoArgsIsHelpError, whose message is
+        the whole help, would reach ``main`` as an ``Error: Usage: ...`` block under a second usage line)."""
+        if not args and not ctx.resilient_parsing:
+            click.echo(ctx.get_help(), err=True)
+            ctx.exit(2)
+        return super().parse_args(ctx, args)
+
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
