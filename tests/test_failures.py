@@ -369,6 +369,7 @@ def test_messages_show_values_plainly_and_name_an_input_once(tmp_path):
     (["track", "{clip}", "-m", "foo"], "Invalid value for '-m' / '--method': 'foo' is not one of"),
     (["track", "{clip}", "--skip-existing"], "--skip-existing: a batch option (give --out-dir)"),
     (["track", "{clip}", "--shard", "0/2"], "--shard: a batch option (give --out-dir)"),
+    (["track", "{clip}", "-o", "{tmp}/o.h5", "--format", "csv"], "--format: a batch option (give --out-dir)"),
     (["track", "{clip}", "{clip2}"], "several inputs need --out-dir"),
     (["track", "{clip}", "{clip2}", "-o", "{tmp}/o.csv"], "-o and --overlay take one input"),
     (["track", "{clip}", "--out-dir", "{tmp}/d", "-o", "{tmp}/o.csv"], "-o and --overlay take one input"),

@@ -7,7 +7,7 @@ import click
 from condtrack_cli.threads import THREADS_ENV
 
 #: Options of ``track`` that only a batch (--out-dir) takes.
-BATCH_ONLY = ("skip_existing", "shard", "scheduler", "scheduler_file", "jobs")
+BATCH_ONLY = ("skip_existing", "shard", "scheduler", "scheduler_file", "jobs", "format")
 
 
 class _Shard(click.ParamType):

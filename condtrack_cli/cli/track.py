@@ -7,6 +7,7 @@ import os
 from pathlib import Path
 
 import click
+from click.core import ParameterSource
 
 from condtrack_cli import MAX_SEED, registry
 from condtrack_cli.cli.batch_options import batch_options, refuse_batch_options
@@ -92,7 +93,8 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
     if in_batch and out_dir is None:
         usage.fail("several inputs need --out-dir")
     if not in_batch:
-        refuse_batch_options({**batch, "jobs": jobs})
+        refuse_batch_options({**batch, "jobs": jobs,
+                              "format": usage.get_parameter_source("batch_format") is ParameterSource.COMMANDLINE})
     options = {name: override for name, override, given in (
         ("--smooth", "filter.smooth=true", smooth), ("--untrackable", f"detect.untrackable={untrackable}", untrackable),
         ("--max-std", f"output.max_std={max_std!r}", max_std is not None),
