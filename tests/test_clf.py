@@ -1,11 +1,11 @@
 """CLF on the samples: occluded points coast unseen and are re-acquired; CLF beats STK; the
 per-point choice of dynamics (``select``) keeps the occlusion sample and gains on the ring.
 
-Measured: occlusion sample CLF <delta_avg 0.983, AJ 0.939 against STK 0.807, 0.598; 27
-occlusion runs of >= 3 frames, points reported visible on 8% of the covered
-frames, 24 of 27 back within 1 px one frame after they reappear (25 with the plain
-SSD cost, docs/departures.md). Ring sample: select 0.908, global 0.824, local 0.870;
-occlusion sample: select 0.983, global 0.985, local 0.810.
+Measured at e5644cc (today's numbers: docs/departures.md, "CLF dynamics"; the asserts below hold at both):
+occlusion sample CLF <delta_avg 0.983, AJ 0.939 against STK 0.807, 0.598; 27 occlusion runs of >= 3 frames,
+points reported visible on 8% of the covered frames, 24 of 27 back within 1 px one frame after they reappear (25
+with the plain SSD cost, docs/departures.md). Ring sample: select 0.908, global 0.824, local 0.870; occlusion
+sample: select 0.983, global 0.985, local 0.810.
 """
 
 from __future__ import annotations
