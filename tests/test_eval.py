@@ -446,6 +446,16 @@ def test_a_byte_order_mark_before_the_header_is_ignored(tmp_path):
     assert gt.point_id.tolist() == [0] and gt.gt_xy[0, 0].tolist() == [1.0, 2.0]
 
 
+def test_a_binary_ground_truth_is_named_as_not_a_text_csv(tmp_path):
+    """`eval X.h5 X.h5` (a track file given as the truth) said "cannot read the ground truth ('utf-8' codec can't decode
+    byte 0x89 in position 0: invalid start byte)"; it now says what the truth must be."""
+    path = tmp_path / "tracks.h5"
+    path.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(64))
+    with pytest.raises(CondtrackError, match=r"^\S*tracks.h5: not a text CSV; the ground truth is a CSV with the columns "
+                                             r"point_id,frame,x,y,visible \(or a TAP-Vid pickle, with --gt-format tapvid\)$"):
+        load_gt_csv(path)
+
+
 def test_load_gt_csv_missing_file(tmp_path):
     with pytest.raises(CondtrackError, match="nope.csv"):
         load_gt_csv(tmp_path / "nope.csv")

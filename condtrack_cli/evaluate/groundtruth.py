@@ -132,7 +132,10 @@ def load_gt_csv(path: str | Path) -> GroundTruth:
     try:
         with path.open(newline="", encoding="utf-8-sig") as f:  # -sig: a spreadsheet's byte-order mark
             rows = list(csv.reader(f))
-    except (OSError, UnicodeDecodeError, csv.Error) as error:
+    except UnicodeDecodeError:
+        raise CondtrackError(f"{path}: not a text CSV; the ground truth is a CSV with the columns "
+                             f"{','.join(GT_COLUMNS)} (or a TAP-Vid pickle, with --gt-format tapvid)") from None
+    except (OSError, csv.Error) as error:
         raise read_error(error, f"{path}: cannot read the ground truth ({error})") from None
     header = [name.strip() for name in rows[0]] if rows else []
     absent = [name for name in GT_COLUMNS if name not in header]
