@@ -946,6 +946,27 @@ def test_eval_refuses_detected_points_scored_by_coinciding_ids(tmp_path, suffix)
     assert result.returncode == 0 and json.loads(result.stdout)["delta_avg"] > 0.5
 
 
+def test_a_two_way_run_s_csv_is_scored_though_its_first_row_is_not_its_query(tmp_path):
+    """A CSV holds no queries: a point queried on frame 2 and tracked backward starts on frame 0, 1.5 px off its truth
+    there. That row is no query: the point passes on its query row (exact), while a point with no row on its truth is
+    still refused."""
+    xy = gt_xy()
+    xy[1, 0] += [1.5, 0]  # point 1, queried on frame 2: its backward pass's frame 0
+    visible = np.ones((2, 4), bool)
+    cov = np.broadcast_to(np.eye(2), (2, 4, 2, 2))
+    gt = write_gt_csv(tmp_path / "gt.csv", [f"{p},{f},{10 + f},{20 + 2 * p},1" for p in (0, 1) for f in range(4)])
+    pred = write_pred_csv(tmp_path / "pred.csv", [0, 1], xy, visible, cov)
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--json"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["delta_avg"] == 1.0  # scored after its first row, frame 0, the only one off
+    xy[1] = gt_xy()[1] + [1.5, 0]  # every row of point 1 off its truth: tracked from other queries
+    pred = write_pred_csv(tmp_path / "other.csv", [0, 1], xy, visible, cov)
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--json"])
+    assert result.exit_code == 1 and str(result.exception).startswith(
+        "point_id 1: the prediction's query on frame 0 (11.50, 22.00) is 1.50 px from the ground truth (10.00, 22.00), "
+        "more than 1 px, as are its other rows: track from")
+
+
 def test_bench_synthetic_checks_average_aj_and_oa_over_the_scenes_that_have_them():
     """A scene without occluded truth (nonrigid's) has AJ and OA n/a: the means are over the other scenes, not NaN
     (a check that could never pass)."""

@@ -88,15 +88,19 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
     is reported, on stderr with --json). Frames where PRED has no position count
     as not visible and not within any threshold. Each point's query must lie
     within 1 px of the GT on its query frame where the GT has it visible, else
-    PRED is refused (tracked from other queries, e.g. detected without -p).
+    PRED is refused (tracked from other queries, e.g. detected without -p); a
+    CSV, which holds no queries, passes where any row of the point lies within
+    1 px of its GT (its first row is frame 0 after the backward pass, not the
+    query, and is scored from there: the HDF5 output scores from the query).
     """
     from condtrack_cli.io.atomic import refuse_overwriting_inputs
+    from condtrack_cli.io.formats import track_format
     from condtrack_cli.io.read import read_tracks
 
     truth = _GT_READERS[gt_format](gt)
     refuse_overwriting_inputs({"--plot": plot_path}, {"of GT": _frame_folder(Path(gt).parent, truth.gt_xy.shape[1])})
     tracks, _ = read_tracks(pred)
-    result, data = score_tracks(tracks, truth, query_mode)
+    result, data = score_tracks(tracks, truth, query_mode, from_csv=track_format(pred) == "csv")
     if plot_path is not None:
         from condtrack_cli.evaluate.plot import write_plot
 

@@ -17,7 +17,10 @@ Before scoring, ``check_queries`` makes sure the ids mean the same points: each
 predicted point's query (HDF5: its ``/queries`` row; CSV: its first row) must lie
 within ``QUERY_TOLERANCE_PX`` of the ground truth on the query frame wherever the
 truth has the point visible there. Points detected on frame 0 (no ``-p``) are
-numbered 0.., and their ids coincide with the truth's by chance only.
+numbered 0.., and their ids coincide with the truth's by chance only. A CSV holds
+no queries: a two-way run's first row is the backward pass's frame 0, not the
+query, so a CSV point whose first row is off also passes when another of its rows
+(the query row among them) lies within the tolerance of the truth.
 
 Matching a prediction to the ground truth (``align``) is by ``point_id``:
 predicted points absent from the GT are ignored; GT points absent from the
@@ -336,12 +339,15 @@ def align(pred: Tracks, gt: GroundTruth) -> Aligned:
     )
 
 
-def check_queries(pred: Tracks, gt: GroundTruth, tolerance: float = QUERY_TOLERANCE_PX) -> None:
+def check_queries(pred: Tracks, gt: GroundTruth, tolerance: float = QUERY_TOLERANCE_PX, *,
+                  any_row: bool = False) -> None:
     """Refuse a prediction whose queries are not on the ground truth of the same point_id (module docstring).
 
     Points without any position, absent from the truth, or whose truth is not
-    visible on their query frame are not checked. CondtrackError names the
-    first point_id whose query is more than ``tolerance`` px from its truth.
+    visible on their query frame are not checked. ``any_row`` (a CSV, whose
+    queries are its first rows): a point also passes when any of its rows lies
+    within ``tolerance`` px of its visible truth. CondtrackError names the first
+    point_id whose query is more than ``tolerance`` px from its truth.
     """
     present = pred.has_state.any(axis=1)
     ids = np.asarray(pred.queries.point_id, np.int64)[present]
@@ -354,11 +360,16 @@ def check_queries(pred: Tracks, gt: GroundTruth, tolerance: float = QUERY_TOLERA
     truth_xy = gt.gt_xy[gt_index, frame]
     distance = np.linalg.norm(query_xy - truth_xy, axis=1)
     wrong = gt.visible[gt_index, frame] & ~(distance <= tolerance)
+    if any_row:
+        shared = min(pred.xy.shape[1], gt.gt_xy.shape[1])
+        rows = pred.xy[pred_index[on_truth], :shared] - gt.gt_xy[gt_index, :shared]  # (P', F', 2), NaN off the rows
+        wrong &= ~(gt.visible[gt_index, :shared] & (np.hypot(rows[..., 0], rows[..., 1]) <= tolerance)).any(axis=1)
     if wrong.any():
         i = int(np.argmax(wrong))
         raise CondtrackError(
             f"point_id {gt.point_id[gt_index[i]]}: the prediction's query on frame {frame[i]} "
             f"({query_xy[i, 0]:.2f}, {query_xy[i, 1]:.2f}) is {distance[i]:.2f} px from the ground truth "
-            f"({truth_xy[i, 0]:.2f}, {truth_xy[i, 1]:.2f}), more than {tolerance:g} px: track from the ground "
+            f"({truth_xy[i, 0]:.2f}, {truth_xy[i, 1]:.2f}), more than {tolerance:g} px"
+            + (", as are its other rows" if any_row else "") + ": track from the ground "
             "truth's queries (-p); detected points are numbered 0.. and their ids mean nothing to the truth"
         )
