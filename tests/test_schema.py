@@ -448,3 +448,23 @@ def test_no_row_outside_the_frame_is_reported_visible(method):
         outside = (x < -0.5) | (x > t.info.width - 0.5) | (y < -0.5) | (y > t.info.height - 0.5)
     assert not (t.visible & outside).any()
     assert t.visible.mean() > 0.7
+
+
+def test_measurements_are_nan_and_inf_where_the_doc_says(tmp_path):
+    """/measurements/z is NaN on the query's frame, where no measurement is made (R NaN), and where no candidate lay in
+    the gate, R then +inf on its diagonal and 0 off it (19 rows of clf on the occlusion sample); the doc said only the
+    first."""
+    import condtrack_cli as ct
+    from conftest import SAMPLES
+
+    sample = SAMPLES / "occlusion"
+    ct.track(str(sample), queries=str(sample / "queries.csv"), method="clf").to_hdf5(tmp_path / "clf.h5")
+    with h5py.File(tmp_path / "clf.h5") as f:
+        z, R, query_frame = f["measurements/z"][()], f["measurements/R"][()], f["queries"][:, 0].astype(int)
+    no_z, no_r = np.isnan(z).all(axis=-1), np.isnan(R).all(axis=(-2, -1))
+    query = np.zeros_like(no_r)
+    query[np.arange(len(query)), query_frame] = True
+    np.testing.assert_array_equal(no_r, query)
+    gate_empty = no_z & ~no_r
+    assert gate_empty.any() and (np.isnan(z).any(axis=-1) == no_z).all()
+    assert np.isinf(R[gate_empty][:, [0, 1], [0, 1]]).all() and (R[gate_empty][:, [0, 1], [1, 0]] == 0).all()
