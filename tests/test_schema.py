@@ -177,6 +177,23 @@ def test_track_command_writes_the_documented_root_attributes(shifted_folder, tmp
         assert set(f.attrs) == documented
 
 
+
+def test_points_are_written_by_increasing_point_id_whatever_the_queries_file_s_order(shifted_folder, tmp_path):
+    """The doc said the points come "in query order"; the queries are sorted by point_id, and so are both files."""
+    folder, _ = shifted_folder
+    queries = tmp_path / "q.csv"
+    queries.write_text("point_id,frame,x,y\n50,0,120,100\n7,0,200,150\n300,0,150,60\n")
+    for name in ("t.h5", "t.csv"):
+        result = CliRunner().invoke(cli, ["track", str(folder), "-p", str(queries), "-m", "stk", "-o",
+                                          str(tmp_path / name), "-q"])
+        assert result.exit_code == 0, result.output
+    with h5py.File(tmp_path / "t.h5") as f:
+        np.testing.assert_array_equal(f["tracks/point_id"][()], [7, 50, 300])
+        np.testing.assert_array_equal(f["queries"][:, 1], [200, 120, 150])
+    rows = (tmp_path / "t.csv").read_text().splitlines()[1:]
+    assert list(dict.fromkeys(int(row.split(",")[0]) for row in rows)) == [7, 50, 300]
+    assert "point (by increasing `point_id`" in (REPO / "docs" / "schema.md").read_text()
+
 def test_a_csv_with_another_header_is_refused_naming_the_expected_one(tmp_path):
     path = tmp_path / "old.csv"
     path.write_text("point_id,frame,x,y,visible\n0,0,1.0,2.0,1\n")
