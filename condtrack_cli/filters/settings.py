@@ -144,7 +144,7 @@ class AutoSettings(StageSettings):
         0.5, ge=0, description="change filter when the averaged evidence passes +- this (half squared Mahalanobis units)"
     )
     lost_evidence: float = Field(
-        0.5, ge=0,
+        0.25, ge=0,
         description="a point not found keeps the local motion while the mean evidence of its measurements is above this",
     )
     occluder_jump: float | None = Field(
