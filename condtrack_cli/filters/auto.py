@@ -27,7 +27,8 @@ Rule, per point, before each step:
 4. While the point is not found (no measurement in the gate: covered, or
    lost), there is no measurement to weigh. It keeps the local motion when
    the mean of the e_k it has had (the same weights as E, normalised by their
-   sum, so that one measurement counts fully) is above ``lost_evidence``: its
+   sum, so that one measurement counts fully) is above ``lost_evidence`` (0.25, half
+   the margin; docs/departures.md, "`auto`'s lost-evidence threshold 0.25"): its
    measurements said the local motion predicts it better, and a point moving
    with its neighbourhood (parallax, an independent object) stays with it.
    Otherwise it asks which dynamics better continues its last measured step
