@@ -95,6 +95,23 @@ def test_a_redo_that_cannot_give_the_batch_s_output_name_says_so(tmp_path):
         "inputs not run yet); redo with that list and --skip-existing"]
 
 
+def test_an_output_replaced_by_another_input_s_of_the_same_name_is_missing(tmp_path):
+    """x/frames then y/frames, each batched alone into one OUT_DIR, both write frames.h5: status said both were ok,
+    though the file on disk was y's; x's is missing, named as replaced, and redone."""
+    for name in ("x", "y"):
+        append_record(tmp_path, ClipRecord(
+            input=f"{name}/frames", output=str(tmp_path / "frames.h5"), status="ok", error=None, seconds=1.0, frames=5,
+            points=12, method="stk", config_hash=STK, version=__version__, seed=0, queries_hash="", cwd=str(tmp_path)))
+    (tmp_path / "frames.h5").write_bytes(b"")
+    result = status(str(tmp_path))
+    assert result.exit_code == 0
+    assert result.stdout.splitlines()[:4] == [
+        f"missing  {tmp_path}/x/frames  {tmp_path}/frames.h5 was replaced by the output of {tmp_path}/y/frames",
+        f"ok       {tmp_path}/y/frames  {tmp_path}/frames.h5",
+        "2 inputs: 1 ok, 1 missing; 2.0 s in their latest runs, 2.0 s in all",
+        "redo the failed, interrupted and missing inputs:"]
+
+
 def test_all_done_exits_0_and_a_folder_without_manifest_is_an_error(tmp_path, monkeypatch, capsys):
     """A missing OUT_DIR gave Click's usage line and 'Directory ... does not exist', where every other command names a
     missing input in one Error: line (README, Exit codes); it is now that line."""
@@ -258,7 +275,8 @@ def test_a_record_appended_after_a_line_cut_short_stays_a_record(tmp_path, tail)
     record(tmp_path, "a", "ok", 1.0)
     whole = (tmp_path / "manifest.jsonl").read_text().splitlines()[0]
     with open(tmp_path / "manifest.jsonl", "a") as manifest:
-        manifest.write(whole.replace('"data/a/frames"', '"data/c/frames"') if tail == "whole" else tail)
+        manifest.write(whole.replace("/a_frames.h5", "/c_frames.h5").replace('"data/a/frames"', '"data/c/frames"')
+                       if tail == "whole" else tail)
     record(tmp_path, "b", "ok", 2.0)
     for name in ("a", "b", "c"):
         (tmp_path / f"{name}_frames.h5").write_bytes(b"")

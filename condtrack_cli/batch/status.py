@@ -7,7 +7,8 @@ file, read from their batch's working directory (``cwd``, absent from older
 manifests, whose paths are taken as written), are one input's. Outputs are
 looked for in OUT_DIR, where a batch writes them, whatever folder the batch or
 ``status`` runs in; an input whose last record is ``ok`` or ``skipped`` but
-whose output file is gone is ``missing``.
+whose output file is gone, or was replaced since by another input's of the same name, is
+``missing``.
 """
 
 from __future__ import annotations
@@ -37,8 +38,8 @@ STATUS_FIELDS = {"input": "string", "output": "string", "status": "string", "sec
 
 @dataclass(frozen=True)
 class InputStatus:
-    """One input's latest record: ``status`` one of ``STATUSES``, ``error`` the failure's one-line reason,
-    ``output`` None for an interrupted input (it has none)."""
+    """One input's latest record: ``status`` one of ``STATUSES``, ``error`` the failure's one-line reason (a missing
+    output's when another input's replaced it), ``output`` None for an interrupted input (it has none)."""
 
     input: str
     status: str
@@ -93,13 +94,19 @@ def batch_status(out_dir: str | Path) -> BatchStatus:
     identities = [input_identity(record) for record in records]
     attempts = Counter(identities)
     latest = dict(zip(identities, records))  # the last record of each input wins
+    written_by = {Path(record["output"]).name: identity  # each output name's last writer
+                  for identity, record in zip(identities, records) if record["status"] == "ok"}
     inputs = []
     for identity, record in latest.items():
-        status, output = record["status"], str(out_dir / Path(record["output"]).name)
+        status, output, error = record["status"], str(out_dir / Path(record["output"]).name), record.get("error")
+        writer = written_by.get(Path(output).name, identity)
         if status in ("ok", "skipped") and not Path(output).exists():
             status = "missing"
+        elif status in ("ok", "skipped") and writer != identity:  # a batch of another input wrote that name since
+            other = latest[writer]
+            status, error = "missing", f"{output} was replaced by the output of {batch_path(other, other['input'])}"
         inputs.append(InputStatus(batch_path(record, record["input"]), status,
-                                  None if status == "interrupted" else output, record.get("error"),
+                                  None if status == "interrupted" else output, error,
                                   float(record["seconds"]), attempts[identity], record["method"], int(record["seed"])))
     redo, notes = _redo(inputs, list(latest.values()), records)
     return BatchStatus(str(out_dir), inputs, sum(item.seconds for item in inputs),

@@ -16,7 +16,8 @@ def status_command(out_dir: str, as_json: bool) -> None:
 
     Per input its latest record: ok, failed (with the reason), interrupted
     (the batch was stopped before it ended: no output), skipped, or missing
-    (recorded as done but its output is gone); then the counts, the time taken
+    (recorded as done but its output is gone, or replaced by another input's
+    of the same name); then the counts, the time taken
     and the command that redoes the failed, interrupted and missing inputs.
     The exit code is 1 when an input's latest record is failed or interrupted.
     """
@@ -41,7 +42,7 @@ def _print(status) -> None:
     for item in status.inputs:
         detail = {"failed": item.error, "interrupted": NOT_ENDED}.get(item.status, item.output)
         if item.status == "missing":
-            detail += " is gone"
+            detail = item.error or f"{detail} is gone"
         tries = f" ({item.attempts} attempts)" if item.attempts > 1 else ""
         click.echo(f"{item.status:{status_width}s} {item.input:{width}s}  {detail}{tries}")
     counts = ", ".join(f"{count} {name}" for name, count in status.counts.items() if count)
