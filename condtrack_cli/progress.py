@@ -5,16 +5,20 @@ Imports neither numpy nor rich at module level: ``condtrack --help`` imports thi
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
 import warnings
+from pathlib import PurePath
+from typing import Iterator
 
 import click
 
 from condtrack_cli.errors import CondtrackWarning
 
 _shown = True  #: the last ``show_warnings`` choice, handed to a batch's worker processes
+_about = ""  #: the batch input the warnings printed now are about (``warnings_about``); "" outside a batch's job
 
 
 def show_warnings(shown: bool) -> None:
@@ -31,10 +35,25 @@ def warnings_shown() -> bool:
     return _shown
 
 
+@contextlib.contextmanager
+def warnings_about(name: str) -> Iterator[None]:
+    """Inside, the warnings printed begin with ``name: `` (a batch's input, as its ``Error:`` line) unless they
+    already name it: a batch's ``warning: 1 of 16 queries are untrackable ...`` did not say of which input."""
+    global _about
+    before, _about = _about, name
+    try:
+        yield
+    finally:
+        _about = before
+
+
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    """``warnings.showwarning`` as one line on stderr: a CondtrackWarning's message, or any other's category and message."""
+    """``warnings.showwarning`` as one line on stderr: a CondtrackWarning's message, or any other's category and
+    message; within ``warnings_about(name)``, after ``name: ``."""
     named = "" if issubclass(category, CondtrackWarning) else f"{category.__name__}: "
-    click.echo(f"warning: {named}{message}", err=True)
+    named_already = str(message).startswith((f"{_about}:", f"{PurePath(_about)}:"))  # a reader's Path: x/f for ./x/f
+    about = f"{_about}: " if _about and not named_already else ""
+    click.echo(f"warning: {about}{named}{message}", err=True)
 
 
 def _may_be_terminal() -> bool:

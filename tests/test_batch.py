@@ -464,6 +464,23 @@ def test_a_dask_batch_stops_promptly_on_sigterm_and_writes_its_manifest(tmp_path
     assert "Traceback" not in stderr
 
 
+def test_each_warning_of_a_batch_names_its_input(clips, tmp_path):
+    """A batch with one queries file printed 'warning: 1 of 1 queries are untrackable ...' per clip, naming none:
+    which clip's query was meant was not said (its Error: lines name their input); each warning now begins with it."""
+    queries = tmp_path / "q.csv"
+    queries.write_text("frame,x,y\n0,10,10\n")  # flat on clip000 (score 0.6)
+    (Path(clips[1]) / "notes.txt").write_text("")  # its reader's warning names it already, as x/f for ./x/f
+    typed = [clips[0], f"{clips[1]}/."]
+    result = run_cli("track", *typed, "-m", "stk", "-p", str(queries), "--out-dir", str(tmp_path / "o"), "-j", "2")
+    (Path(clips[1]) / "notes.txt").unlink()
+    assert result.returncode == 0, result.stderr
+    warned = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
+    assert f"warning: {clips[1]}: skipping 1 non-image file(s), e.g. 'notes.txt'" in warned
+    assert f"warning: {clips[0]}: 1 of 1 queries are untrackable" in result.stderr
+    assert all(line.startswith((f"warning: {clips[0]}: ", f"warning: {typed[1]}: ", f"warning: {clips[1]}: skipping"))
+               for line in warned)
+
+
 def test_more_threads_than_cores_are_capped_with_a_warning(clips, tmp_path):
     """Issue 28.14: --threads 100000 (or CONDTRACK_THREADS) was taken as asked, a thread storm."""
     result = run_cli("track", clips[0], "-m", "stk", "--threads", "100000", "-o", str(tmp_path / "o.csv"), affinity={0})

@@ -19,6 +19,7 @@ from condtrack_cli.batch.manifest import ClipRecord
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError
 from condtrack_cli.hashes import config_hash, queries_hash
+from condtrack_cli.progress import warnings_about
 from condtrack_cli.run import track_input
 from condtrack_cli.threads import threads_in_use, use_threads
 
@@ -92,8 +93,9 @@ def run_job(job: BatchJob) -> ClipRecord:
     started = time.perf_counter()
     stop_check = _StopCheck(job.stop_event) if job.stop_event else None
     try:
-        summary = track_input(job.input, job.config, job.queries_path, str(staged_output(job.staging, job.output)),
-                              job.seed, stop_check)
+        with warnings_about(job.input):
+            summary = track_input(job.input, job.config, job.queries_path,
+                                  str(staged_output(job.staging, job.output)), job.seed, stop_check)
         digest = queries_hash(job.queries_path)
     except CondtrackError as error:
         return job_record(job, "failed", error=str(error), seconds=round(time.perf_counter() - started, 3),
