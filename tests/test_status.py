@@ -112,6 +112,18 @@ def test_an_output_replaced_by_another_input_s_of_the_same_name_is_missing(tmp_p
         "redo the failed, interrupted and missing inputs:"]
 
 
+def test_the_redo_writes_into_the_out_dir_read_even_when_moved(tmp_path, monkeypatch):
+    """A batch's OUT_DIR renamed (tracks -> tracks_v1): status read tracks_v1's manifest and outputs, but its redo
+    wrote into tracks, the folder the records name, away from the others (a new folder, with --skip-existing every
+    input again)."""
+    (tmp_path / "tracks").mkdir()
+    record(tmp_path / "tracks", "a", "failed", 1.0, "data/a/frames: no such file or folder", cwd=str(tmp_path))
+    (tmp_path / "tracks").rename(tmp_path / "tracks_v1")
+    monkeypatch.chdir(tmp_path)
+    assert status("tracks_v1").stdout.splitlines()[-2] == (
+        f"  condtrack track {tmp_path}/data/a/frames --out-dir {tmp_path}/tracks_v1 -m stk --seed 0 --skip-existing")
+
+
 def test_all_done_exits_0_and_a_folder_without_manifest_is_an_error(tmp_path, monkeypatch, capsys):
     """A missing OUT_DIR gave Click's usage line and 'Directory ... does not exist', where every other command names a
     missing input in one Error: line (README, Exit codes); it is now that line."""

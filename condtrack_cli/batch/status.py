@@ -108,18 +108,20 @@ def batch_status(out_dir: str | Path) -> BatchStatus:
         inputs.append(InputStatus(batch_path(record, record["input"]), status,
                                   None if status == "interrupted" else output, error,
                                   float(record["seconds"]), attempts[identity], record["method"], int(record["seed"])))
-    redo, notes = _redo(inputs, list(latest.values()), records)
+    redo, notes = _redo(inputs, list(latest.values()), records, out_dir)
     return BatchStatus(str(out_dir), inputs, sum(item.seconds for item in inputs),
                        sum(float(record["seconds"]) for record in records), redo, notes)
 
 
-def _redo(inputs: list[InputStatus], latest: list[dict], records: list[dict]) -> tuple[list[str], list[str]]:
+def _redo(inputs: list[InputStatus], latest: list[dict], records: list[dict],
+          out_dir: Path) -> tuple[list[str], list[str]]:
     """``condtrack track`` commands for the failed, interrupted and missing inputs, and notes on the options they lack.
 
     ``latest``: each input's latest record, in the order of ``inputs``. The
     inputs to redo alone when their output names come out as before; otherwise
     every input of the manifest with --skip-existing (output names depend on the
-    whole list). The paths are absolute when the manifest has the batch's folder.
+    whole list). The inputs' paths are absolute when the manifest has the batch's folder; the outputs go to
+    ``out_dir``, whose manifest this is, made absolute (not the folder the records name: the batch's, before a move).
     """
     groups: dict[tuple[str, int, str], list[tuple[InputStatus, dict]]] = {}
     for item, record in zip(inputs, latest):
@@ -135,10 +137,10 @@ def _redo(inputs: list[InputStatus], latest: list[dict], records: list[dict]) ->
                 notes.append(f"-m {method}: the outputs were named from a longer input list than the manifest holds "
                              "(another shard's, or inputs not run yet); redo with that list and --skip-existing")
         first = todo[0][1]
-        options = ["--out-dir", batch_path(first, str(Path(first["output"]).parent)), "-m", method, "--seed", str(seed)]
+        options = ["--out-dir", os.path.abspath(out_dir), "-m", method, "--seed", str(seed)]
         options += ["--format", "csv"] if suffix == ".csv" else []
         commands.append(shlex.join(["condtrack", "track", *names, *options, *skip]))
-        if not all(os.path.isabs(path) for path in [*names, options[1]]):
+        if not all(os.path.isabs(path) for path in names):
             notes.append(f"-m {method}: the manifest does not say which folder the batch ran in; run the command "
                          "from there")
         if not _default_config(method, first["config_hash"]):
