@@ -464,6 +464,24 @@ def test_a_dask_batch_stops_promptly_on_sigterm_and_writes_its_manifest(tmp_path
     assert "Traceback" not in stderr
 
 
+def test_a_list_from_a_pipe_is_read_from_the_working_directory(tmp_path):
+    """--from-list <(ls -d clips/*) read its relative paths from the pipe's folder, /dev/fd: every input
+    '/dev/fd/clips/...: no such file or folder'."""
+    import threading
+
+    from condtrack_cli.cli.track import _read_list
+
+    pipe = tmp_path / "list"
+    os.mkfifo(pipe)
+    writer = threading.Thread(target=pipe.write_text, args=("clips/a\n# b\n\n",))
+    writer.start()
+    assert _read_list(str(pipe)) == ["clips/a"]
+    writer.join()
+    listing = tmp_path / "list.txt"
+    listing.write_text("clips/a\n")
+    assert _read_list(str(listing)) == [str(tmp_path / "clips" / "a")]
+
+
 def test_each_warning_of_a_batch_names_its_input(clips, tmp_path):
     """A batch with one queries file printed 'warning: 1 of 1 queries are untrackable ...' per clip, naming none:
     which clip's query was meant was not said (its Error: lines name their input); each warning now begins with it."""

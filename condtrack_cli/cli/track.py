@@ -118,7 +118,8 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
 
 
 def _read_list(path: str) -> list[str]:
-    """The inputs of a --from-list file, one a line (blank lines and # comments skipped), relative to its folder."""
+    """The inputs of a --from-list file, one a line (blank lines and # comments skipped), relative to its folder (to
+    the working directory for a pipe: ``--from-list <(ls -d clips/*)``, /dev/stdin)."""
     try:
         lines = Path(path).read_text(encoding="utf-8-sig").splitlines()  # -sig: a Windows editor's byte-order mark
     except OSError as error:
@@ -126,5 +127,5 @@ def _read_list(path: str) -> list[str]:
     except UnicodeDecodeError as error:
         raise CondtrackError(f"{path}: the input list is not UTF-8 text (byte {error.object[error.start]:#04x} at "
                              f"offset {error.start})") from None
-    folder = os.path.dirname(path)
+    folder = os.path.dirname(path) if os.path.isfile(path) else ""  # a pipe's /dev/fd/63: not the inputs' folder
     return [os.path.join(folder, line.strip()) for line in lines if line.strip() and not line.lstrip().startswith("#")]
