@@ -5,6 +5,7 @@ Imports no numpy: ``condtrack --help`` loads this module (tests/test_startup.py)
 
 import errno
 import warnings
+from pathlib import PurePath
 
 
 class CondtrackError(Exception):
@@ -45,6 +46,12 @@ class InvalidArgumentType(CondtrackError, TypeError):
     """A Python API argument of a wrong type (seed=1.5, an array of strings)."""
 
     exit_code = 2
+
+
+def names_input(message: str, name: str) -> bool:
+    """Whether ``message`` begins with the input ``name`` and a colon, as typed or as its reader names it
+    (``x/frames`` for ``./x/frames/``): a batch then does not name it again."""
+    return message.startswith((f"{name}:", f"{PurePath(name)}:"))
 
 
 def read_error(error: OSError | Exception, message: str) -> CondtrackError:

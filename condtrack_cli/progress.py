@@ -10,12 +10,11 @@ import os
 import sys
 import time
 import warnings
-from pathlib import PurePath
 from typing import Iterator
 
 import click
 
-from condtrack_cli.errors import CondtrackWarning
+from condtrack_cli.errors import CondtrackWarning, names_input
 
 _shown = True  #: the last ``show_warnings`` choice, handed to a batch's worker processes
 _about = ""  #: the batch input the warnings printed now are about (``warnings_about``); "" outside a batch's job
@@ -51,8 +50,7 @@ def _print_warning(message, category, filename, lineno, file=None, line=None) ->
     """``warnings.showwarning`` as one line on stderr: a CondtrackWarning's message, or any other's category and
     message; within ``warnings_about(name)``, after ``name: ``."""
     named = "" if issubclass(category, CondtrackWarning) else f"{category.__name__}: "
-    named_already = str(message).startswith((f"{_about}:", f"{PurePath(_about)}:"))  # a reader's Path: x/f for ./x/f
-    about = f"{_about}: " if _about and not named_already else ""
+    about = f"{_about}: " if _about and not names_input(str(message), _about) else ""
     click.echo(f"warning: {about}{named}{message}", err=True)
 
 

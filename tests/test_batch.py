@@ -499,6 +499,14 @@ def test_each_warning_of_a_batch_names_its_input(clips, tmp_path):
                for line in warned)
 
 
+def test_a_failed_input_typed_otherwise_than_its_reader_names_it_is_named_once(clips, tmp_path):
+    """-q's Error: line for ./nothere was 'Error: ./nothere: nothere: no such file or folder'."""
+    typed = f"{tmp_path}/nothere/."
+    result = run_cli("track", typed, clips[0], "-m", "stk", "--out-dir", str(tmp_path / "o"), "-q")
+    assert result.returncode == 1
+    assert result.stderr.splitlines()[0] == f"Error: {tmp_path}/nothere: no such file or folder"
+
+
 def test_more_threads_than_cores_are_capped_with_a_warning(clips, tmp_path):
     """Issue 28.14: --threads 100000 (or CONDTRACK_THREADS) was taken as asked, a thread storm."""
     result = run_cli("track", clips[0], "-m", "stk", "--threads", "100000", "-o", str(tmp_path / "o.csv"), affinity={0})

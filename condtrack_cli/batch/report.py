@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 
 from condtrack_cli.batch.manifest import MANIFEST, ClipRecord
+from condtrack_cli.errors import names_input
 
 
 class ClipProgress:
@@ -46,7 +47,7 @@ def report_end(records: list[ClipRecord], method: str, out_dir: Path, quiet: boo
         if quiet:  # -q silences progress and the table, not the errors
             for r in records:
                 if r.status == "failed":  # named once: most messages start with the input already
-                    named = r.error.startswith(f"{r.input}:")
+                    named = names_input(r.error, r.input)
                     click.echo(f"Error: {r.error}" if named else f"Error: {r.input}: {r.error}", err=True)
         click.echo(f"Error: {failed} of {len(records)} inputs failed (see {out_dir / MANIFEST})", err=True)
     return failed
