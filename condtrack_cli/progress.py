@@ -6,6 +6,7 @@ Imports neither numpy nor rich at module level: ``condtrack --help`` imports thi
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import os
 import sys
 import time
@@ -17,7 +18,9 @@ import click
 from condtrack_cli.errors import CondtrackWarning, names_input
 
 _shown = True  #: the last ``show_warnings`` choice, handed to a batch's worker processes
-_about = ""  #: the batch input the warnings printed now are about (``warnings_about``); "" outside a batch's job
+#: the batch input the warnings printed now are about (``warnings_about``); "" outside a batch's job. A context
+#: variable: a Dask worker may run several jobs at once in its threads, each about its own input
+_about: contextvars.ContextVar[str] = contextvars.ContextVar("condtrack_warnings_about", default="")
 
 
 def show_warnings(shown: bool) -> None:
@@ -38,19 +41,19 @@ def warnings_shown() -> bool:
 def warnings_about(name: str) -> Iterator[None]:
     """Inside, the warnings printed begin with ``name: `` (a batch's input, as its ``Error:`` line) unless they
     already name it: a batch's ``warning: 1 of 16 queries are untrackable ...`` did not say of which input."""
-    global _about
-    before, _about = _about, name
+    token = _about.set(name)
     try:
         yield
     finally:
-        _about = before
+        _about.reset(token)
 
 
 def _print_warning(message, category, filename, lineno, file=None, line=None) -> None:
     """``warnings.showwarning`` as one line on stderr: a CondtrackWarning's message, or any other's category and
     message; within ``warnings_about(name)``, after ``name: ``."""
     named = "" if issubclass(category, CondtrackWarning) else f"{category.__name__}: "
-    about = f"{_about}: " if _about and not names_input(str(message), _about) else ""
+    name = _about.get()
+    about = f"{name}: " if name and not names_input(str(message), name) else ""
     click.echo(f"warning: {about}{named}{message}", err=True)
 
 
