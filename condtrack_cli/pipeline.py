@@ -62,11 +62,11 @@ def build_stage(config: Config, kind: str):
     return registry.get(kind, stage.name).factory(stage.settings)
 
 
-def detect_queries(config: Config, first: Frame) -> Queries:
-    """Queries detected on the first frame with the configured detector."""
+def detect_queries(config: Config, first: Frame, info: SequenceInfo) -> Queries:
+    """Queries detected on the first frame with the configured detector (its output checked: ``queries.py``)."""
     stage = config.stage("detect")
     xy = registry.get("detect", stage.name).factory(stage.settings, first.gray)
-    return detected_queries(xy)
+    return detected_queries(xy, info, stage.name)
 
 
 def build_tracker(config: Config, queries: Queries, info: SequenceInfo, rng: np.random.Generator,
@@ -228,7 +228,7 @@ def _track_frames(frames: Iterable[np.ndarray], info: SequenceInfo, config: Conf
         raise CondtrackError(f"{info.input}: the input has no frame")
     first = Frame(0, image)
     if queries is None:
-        queries = detect_queries(config, first)
+        queries = detect_queries(config, first, info)
         if not len(queries):
             raise CondtrackError(f"{info.input}: no trackable point detected on frame 0")
     tracker = build_tracker(config, queries, info, np.random.default_rng(seed), motion)

@@ -135,7 +135,17 @@ def checked_queries(where: str, point_id: np.ndarray, frame: np.ndarray, xy: np.
     return Queries(point_id[order], frame[order], xy[order])
 
 
-def detected_queries(xy: np.ndarray) -> Queries:
-    """Queries for (M, 2) points detected on frame 0, numbered 0..M-1."""
+def detected_queries(xy: np.ndarray, info: SequenceInfo, detector: str) -> Queries:
+    """Queries for (M, 2) points detected on frame 0, numbered 0..M-1, checked against the detect stage's contract
+    (``detect/interface.py``: numbers, finite, inside the frame) and refused naming stage ``detector`` otherwise."""
+    where = f"detect stage '{detector}'"
+    if not isinstance(xy, np.ndarray) or xy.ndim != 2 or xy.shape[1] != 2 or xy.dtype.kind not in "iuf":
+        got = (f"shape {xy.shape}, dtype {xy.dtype}" if isinstance(xy, np.ndarray)
+               else f"a {type(xy).__name__}")
+        raise CondtrackError(f"{where} returned {got}; expected an (M, 2) float64 array of positions (px)")
     m = len(xy)
-    return Queries(np.arange(m, dtype=np.int64), np.zeros(m, np.int64), np.asarray(xy, np.float64).reshape(m, 2))
+    xy = xy.astype(np.float64)
+    if not np.isfinite(xy).all():
+        raise CondtrackError(f"{where}: point {int(np.argmax(~np.isfinite(xy).all(axis=1)))} is not finite")
+    index = np.arange(m, dtype=np.int64)
+    return checked_queries(where, index, np.zeros(m, np.int64), xy, info, index)

@@ -13,6 +13,7 @@ import pytest
 
 import condtrack_cli as ct
 from condtrack_cli import registry
+from condtrack_cli.settings import StageSettings
 from condtrack_cli.evaluate.groundtruth import load_gt_csv
 from condtrack_cli.io.formats import FORMATS
 
@@ -135,3 +136,26 @@ def test_every_registered_stage_runs_on_a_tiny_scene(tmp_path, tiny_scene, kind,
         suffix = next(s for s, format_name in FORMATS.items() if format_name == name)
         (t.to_csv if name == "csv" else t.to_hdf5)(tmp_path / f"out{suffix}")
         assert np.allclose(ct.read_tracks(tmp_path / f"out{suffix}").xy, t.xy, atol=1e-6, equal_nan=True)
+
+
+@pytest.mark.parametrize("returned, message", [
+    (np.zeros((3, 3)), r"detect stage 'bad' returned shape \(3, 3\), dtype float64; expected an \(M, 2\)"),
+    (np.zeros(3), r"detect stage 'bad' returned shape \(3,\)"),
+    (np.full((3, 2), "1"), r"detect stage 'bad' returned shape \(3, 2\), dtype <U1"),
+    (None, r"detect stage 'bad' returned a NoneType"),
+    (np.array([[20.0, 20.0], [np.nan, 5.0]]), r"detect stage 'bad': point 1 is not finite"),
+    (np.array([[20.0, 20.0], [-50.0, 5.0]]), r"detect stage 'bad': row 1: point \(-50, 5\) is outside the 320x240"),
+])
+def test_a_detect_stage_returning_what_its_contract_does_not_allow_is_refused(returned, message):
+    """A detector's output is checked against detect/interface.py: a one-line error naming the stage, not a numpy
+    traceback deep in the filter (or a point outside the frame tracked)."""
+
+    class BadSettings(StageSettings):
+        pass
+
+    registry.register("detect", "bad", BadSettings)(lambda settings, gray: returned)
+    try:
+        with pytest.raises(ct.CondtrackError, match=message):
+            ct.track(str(SAMPLE), config={"detect": {"name": "bad"}, "filter": {"method": "mdr"}})
+    finally:
+        registry._STAGES["detect"].pop("bad", None)

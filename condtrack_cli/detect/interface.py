@@ -8,7 +8,8 @@ function itself (a built-in one is a row of ``registry.BUILTINS`` instead), call
 - xy: (M, 2) float64 positions in px, x right, y down, (0, 0) the centre of the
   top-left pixel (``condtrack_cli/types.py``), best first; M may be 0.
 
-The pipeline makes them queries on frame 0 with point ids 0..M-1 (``queries.detected_queries``).
+The pipeline makes them queries on frame 0 with point ids 0..M-1 (``queries.detected_queries``), refusing any
+other shape or dtype, a non-finite position or one outside the frame.
 """
 
 from __future__ import annotations
