@@ -159,3 +159,34 @@ def test_a_detect_stage_returning_what_its_contract_does_not_allow_is_refused(re
             ct.track(str(SAMPLE), config={"detect": {"name": "bad"}, "filter": {"method": "mdr"}})
     finally:
         registry._STAGES["detect"].pop("bad", None)
+
+
+def test_a_filter_stage_writing_what_the_readers_refuse_is_not_written(tmp_path):
+    """A filter stage's negative variance was written to a track file that condtrack itself then refused to read;
+    now the write is refused, naming the value and the filter, and no file is left."""
+    from condtrack_cli.filters.base import Tracker
+
+    class NegativeSettings(StageSettings):
+        pass
+
+    class NegativeTracker(Tracker):
+        method = "negative"
+
+        def _start(self, index, frame):
+            self.cov[index] = np.eye(2)
+
+        def _advance(self, index, prev, frame, motion):
+            self.cov[index] = -np.eye(2)
+
+    registry.register("filter", "negative", NegativeSettings)(
+        lambda settings, queries, info, **_context: NegativeTracker(queries, info))
+    try:
+        tracks = ct.track(str(SAMPLE), queries=SAMPLE / "queries.csv", method="negative")
+        for name in ("out.csv", "out.h5"):
+            with pytest.raises(ct.CondtrackError, match=rf"{name}: not written: cov at point_id 0, frame 1 is "
+                                                        r"\[\[-1.0, -0.0\], \[-0.0, -1.0\]\]: a variance is never "
+                                                        r"negative \(filter 'negative'\)"):
+                tracks.to_csv(tmp_path / name) if name.endswith(".csv") else tracks.to_hdf5(tmp_path / name)
+        assert not list(tmp_path.iterdir())
+    finally:
+        registry._STAGES["filter"].pop("negative", None)
