@@ -101,9 +101,16 @@ _loaded = False
 
 
 def register(kind: str, name: str, settings: type[BaseModel], summary: str = ""):
-    """Decorator registering ``factory`` as stage ``name`` of ``kind``."""
+    """Decorator registering ``factory`` as stage ``name`` of ``kind``.
+
+    ValueError for a ``settings`` model with a field without a default: the config fills every stage's settings from
+    the defaults (every filter's, whichever method runs), and the default config lists each key with its default.
+    """
     if kind not in KINDS:
         raise ValueError(f"unknown stage kind {kind!r}; valid kinds: {', '.join(KINDS)}")
+    required = [key for key, field in settings.model_fields.items() if field.is_required()]
+    if required:
+        raise ValueError(f"{kind} stage {name!r}: setting {', '.join(required)} has no default (every setting needs one)")
 
     def decorate(factory: Callable) -> Callable:
         first_doc_line = ((factory.__doc__ or "").strip().splitlines() or [""])[0]

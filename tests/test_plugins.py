@@ -190,3 +190,23 @@ def test_a_filter_stage_writing_what_the_readers_refuse_is_not_written(tmp_path)
         assert not list(tmp_path.iterdir())
     finally:
         registry._STAGES["filter"].pop("negative", None)
+
+
+def test_a_stage_whose_settings_lack_a_default_is_not_registered():
+    """A filter whose settings model had a field without a default broke every run (any -m: 'config key
+    filter.req.gain: Field required') and `stages --default-config` (a yaml traceback); now register refuses it,
+    which an entry point's loading reports as a warning, leaving its stages out."""
+    from pydantic import Field
+
+    from condtrack_cli.config import default_yaml, load_config
+
+    class RequiredSettings(StageSettings):
+        gain: float = Field(description="no default")
+
+    try:
+        with pytest.raises(ValueError, match="filter stage 'req': setting gain has no default"):
+            registry.register("filter", "req", RequiredSettings)(lambda settings, queries, info, **_context: None)
+        assert "req" not in registry.names("filter")
+        assert load_config(None).method == "auto" and "req:" not in default_yaml()
+    finally:
+        registry._STAGES["filter"].pop("req", None)
