@@ -47,6 +47,7 @@ from condtrack_cli.filters.gauss2 import symmetrize
 from condtrack_cli.filters.interface import Tracker
 from condtrack_cli.frame_reports import FrameReports, FrameStore, park, temporary_folder
 from condtrack_cli.frames.prefetch import Prefetched
+from condtrack_cli.measure.interface import CheckedMeasurer
 from condtrack_cli.motion.interface import FrameMotion, MotionStages
 from condtrack_cli.queries import detected_queries
 from condtrack_cli.threads import threads_in_use
@@ -59,7 +60,11 @@ MOTION_THREAD = "condtrack-motion-ahead"
 def build_stage(config: Config, kind: str):
     """The configured stage of ``kind`` ('motion', 'measure'), built from its settings alone."""
     stage = config.stage(kind)
-    return registry.get(kind, stage.name).factory(stage.settings)
+    spec = registry.get(kind, stage.name)
+    built = spec.factory(stage.settings)
+    if kind == "measure" and not isinstance(spec.factory_target, str):  # not a built-in: its outputs checked
+        return CheckedMeasurer(built, stage.name)
+    return built
 
 
 def detect_queries(config: Config, first: Frame, info: SequenceInfo) -> Queries:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import os
 import subprocess
 import sys
@@ -210,3 +212,36 @@ def test_a_stage_whose_settings_lack_a_default_is_not_registered():
         assert load_config(None).method == "auto" and "req:" not in default_yaml()
     finally:
         registry._STAGES["filter"].pop("req", None)
+
+
+@pytest.mark.parametrize("change, message", [
+    (None, None),
+    (lambda m: dataclasses.replace(m, z=m.z[:-1]), r"measure stage 'odd' returned z of shape \((\d+), 2\); "
+                                                   r"expected \((\d+), 2\) numbers"),
+    (lambda m: dataclasses.replace(m, R=m.R[:, 0]), r"returned R of shape \((\d+), 2\); expected \(\1, 2, 2\)"),
+    (lambda m: dataclasses.replace(m, R=-m.R), r"measure stage 'odd' returned an R with a NaN or a negative variance"),
+])
+def test_a_measure_stage_returning_what_its_contract_does_not_allow_is_refused(change, message):
+    """A measure stage from outside condtrack (the built-in SSD, its measurements altered) whose arrays break
+    measure/interface.py made a numpy traceback deep in the filter; now a one-line error names the stage. Unaltered,
+    it tracks as the built-in stage does (its optional methods, as resized for the drift check, still used)."""
+    from condtrack_cli.measure.response import SSDSettings
+    from condtrack_cli.measure.ssd import SSDMeasure
+
+    class Altered(SSDMeasure):
+        def measure(self, *args):
+            found = super().measure(*args)
+            return found if change is None else change(found)
+
+    registry.register("measure", "odd", SSDSettings)(lambda settings, **_context: Altered(settings))
+    track = functools.partial(ct.track, str(SAMPLE), queries=SAMPLE / "queries.csv", method="clf")
+    config = {"filter": {"clf": {"drift_check_template": 15}}}
+    try:
+        if message is None:
+            ours = track(config={**config, "measure": {"name": "odd"}})
+            assert np.array_equal(ours.xy, track(config=config).xy, equal_nan=True)
+        else:
+            with pytest.raises(ct.CondtrackError, match=message):
+                track(config={"measure": {"name": "odd"}})
+    finally:
+        registry._STAGES["measure"].pop("odd", None)

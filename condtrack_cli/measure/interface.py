@@ -15,6 +15,8 @@ from typing import Protocol
 
 import numpy as np
 
+from condtrack_cli.errors import CondtrackError
+
 
 @dataclass(frozen=True)
 class Measurement:
@@ -67,3 +69,56 @@ class Measurer(Protocol):
                 sigma: float) -> Measurement:
         """Match (P, t, t) ``templates`` around (P, 2) ``predicted`` positions within the gate of
         innovation covariance (P, 2, 2) ``gate_cov`` (px^2), with noise std ``sigma`` (grey levels)."""
+
+
+class CheckedMeasurer:
+    """A measure stage from outside condtrack (a plugin), its outputs checked against this contract.
+
+    Each call's arrays must have the shapes above (P the points asked); R no NaN and no negative variance. Otherwise a
+    CondtrackError names the stage, where a numpy traceback deep in a filter would come. Every other attribute (the
+    optional ones included: ``hasattr`` answers as for the stage itself) is the stage's own.
+    """
+
+    def __init__(self, measurer: Measurer, name: str):
+        self._measurer, self._name = measurer, name
+
+    def __getattr__(self, attribute: str):
+        found = getattr(self._measurer, attribute)
+        if attribute == "resized":  # optional: the same stage with other patches, checked as well
+            return lambda side: CheckedMeasurer(found(side), self._name)
+        return found
+
+    def _refuse(self, what: str, got: object, expected: str) -> None:
+        shape = f"shape {got.shape}" if isinstance(got, np.ndarray) else f"a {type(got).__name__}"
+        raise CondtrackError(f"measure stage '{self._name}' returned {what} of {shape}; expected {expected} "
+                             "(measure/interface.py)")
+
+    def _check(self, what: str, got: object, shape: tuple[int, ...]) -> None:
+        if not isinstance(got, np.ndarray) or got.shape != shape or got.dtype.kind not in "biuf":
+            self._refuse(what, got, f"{shape} numbers")
+
+    def templates(self, gray: np.ndarray, xy: np.ndarray) -> np.ndarray:
+        t = self._measurer.templates(gray, xy)
+        side = self._measurer.template_side
+        self._check("templates", t, (len(xy), side, side))
+        return t
+
+    def cost(self, templates: np.ndarray, patches: np.ndarray) -> np.ndarray:
+        c = self._measurer.cost(templates, patches)
+        self._check("cost", c, (len(templates),))
+        return c
+
+    def measure(self, gray: np.ndarray, templates: np.ndarray, predicted: np.ndarray, gate_cov: np.ndarray,
+                sigma: float) -> Measurement:
+        m = self._measurer.measure(gray, templates, predicted, gate_cov, sigma)
+        p = len(predicted)
+        if not isinstance(m, Measurement):
+            self._refuse("measure", m, "a Measurement")
+        for what, got, shape in (("z", m.z, (p, 2)), ("R", m.R, (p, 2, 2)), ("residual", m.residual, (p,)),
+                                 ("informative", m.informative, (p,))) + (
+                                     (("aligned", m.aligned, (p,)),) if m.aligned is not None else ()):
+            self._check(what, got, shape)
+        if np.isnan(m.R).any() or (m.R[:, [0, 1], [0, 1]] < 0).any():
+            raise CondtrackError(f"measure stage '{self._name}' returned an R with a NaN or a negative variance; "
+                                 "expected covariances (px^2, measure/interface.py)")
+        return m
