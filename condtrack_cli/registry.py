@@ -103,11 +103,17 @@ _loaded = False
 def register(kind: str, name: str, settings: type[BaseModel], summary: str = ""):
     """Decorator registering ``factory`` as stage ``name`` of ``kind``.
 
-    ValueError for a ``settings`` model with a field without a default: the config fills every stage's settings from
+    ValueError for a ``settings`` model that is not a :class:`condtrack_cli.settings.StageSettings` (a plain pydantic
+    model would take a misspelt key silently), or that has a field without a default: the config fills every stage's settings from
     the defaults (every filter's, whichever method runs), and the default config lists each key with its default.
     """
     if kind not in KINDS:
         raise ValueError(f"unknown stage kind {kind!r}; valid kinds: {', '.join(KINDS)}")
+    from condtrack_cli.settings import StageSettings  # pydantic: loaded by the plugin registering already
+
+    if not (isinstance(settings, type) and issubclass(settings, StageSettings)):
+        raise ValueError(f"{kind} stage {name!r}: settings {settings!r} is not a subclass of "
+                         "condtrack_cli.settings.StageSettings (which refuses unknown keys and loose types)")
     required = [key for key, field in settings.model_fields.items() if field.is_required()]
     if required:
         raise ValueError(f"{kind} stage {name!r}: setting {', '.join(required)} has no default (every setting needs one)")

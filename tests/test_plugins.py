@@ -245,3 +245,20 @@ def test_a_measure_stage_returning_what_its_contract_does_not_allow_is_refused(c
                 track(config={"measure": {"name": "odd"}})
     finally:
         registry._STAGES["measure"].pop("odd", None)
+
+
+def test_a_stage_whose_settings_are_not_stage_settings_is_not_registered():
+    """Settings as a plain pydantic model took a misspelt key ('stpe') and a string for an int silently; register
+    now refuses a model that is not a StageSettings, as README asks of it."""
+    from pydantic import BaseModel
+
+    class PlainSettings(BaseModel):
+        step: int = 3
+
+    try:
+        with pytest.raises(ValueError, match="detect stage 'plain': settings .* is not a subclass of "
+                                             "condtrack_cli.settings.StageSettings"):
+            registry.register("detect", "plain", PlainSettings)(lambda settings, gray: np.zeros((0, 2)))
+        assert "plain" not in registry.names("detect")
+    finally:
+        registry._STAGES["detect"].pop("plain", None)
