@@ -192,7 +192,7 @@ def symmetric(cov: np.ndarray) -> np.ndarray:
             gap <= SYMMETRY_TOLERANCE * (np.abs(cov[..., 0, 0]) + np.abs(cov[..., 1, 1])))
 
 
-def _check_values(tracks: Tracks) -> None:
+def check_values(tracks: Tracks) -> None:
     """ValueError naming the first point_id and frame whose values an HDF5 file holds where a CSV's row would be
     refused (:func:`_read_csv`): a position partly or not finite, a negative variance, a covariance partly NaN or
     not symmetric, a dof not above 2 where the point has a state; or a query past the tracks' frames."""
@@ -279,7 +279,7 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
                             file_codes[t["method_code"][()]], z, R, trackability=scores)
             _check_layout(tracks)
             _check_attributes(meta, xy.shape[1])
-            _check_values(tracks)
+            check_values(tracks)
         except (KeyError, OSError, RuntimeError, TypeError, ValueError, IndexError) as error:
             # h5py reports damaged metadata as OSError or RuntimeError
             raise CondtrackError(f"{path}: damaged or incomplete condtrack HDF5 file ({error})") from None

@@ -128,15 +128,15 @@ def write_tracks(tracks: Tracks, path: str | Path, info: SequenceInfo, meta: dic
 
     CondtrackError, nothing written, when the F frames of ``tracks`` are not the ``info.n_frames`` of the input: the
     HDF5 file's ``n_frames`` would disagree with its /tracks/xy, which the readers refuse; and when a value is one the
-    readers refuse (``read._check_values``: a negative variance, a position partly NaN, a dof not above 2)."""
+    readers refuse (``read.check_values``: a negative variance, a position partly NaN, a dof not above 2)."""
     path = Path(path)
     if tracks.xy.shape[1] != info.n_frames:
         raise CondtrackError(f"{path}: not written: the tracks have {counted(tracks.xy.shape[1], 'frame')}, but "
                              f"{info.input or 'their input'} has {counted(info.n_frames, 'frame')}")
-    from condtrack_cli.io.read import _check_values  # read imports this module
+    from condtrack_cli.io.read import check_values  # read imports this module
 
     try:  # what the readers would refuse (a filter stage's negative variance, a half-NaN position) is not written
-        _check_values(tracks)
+        check_values(tracks)
     except ValueError as error:
         method = f" (filter '{meta['method']}')" if meta.get("method") else ""
         raise CondtrackError(f"{path}: not written: {error}{method}") from None
