@@ -62,7 +62,7 @@ def build_stage(config: Config, kind: str):
     stage = config.stage(kind)
     spec = registry.get(kind, stage.name)
     built = spec.factory(stage.settings)
-    if kind == "measure" and not isinstance(spec.factory_target, str):  # not a built-in: its outputs checked
+    if kind == "measure" and not spec.builtin:  # a plugin's: its outputs checked
         return CheckedMeasurer(built, stage.name)
     return built
 

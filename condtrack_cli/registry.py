@@ -86,6 +86,11 @@ class StageSpec:
     summary: str
 
     @property
+    def builtin(self) -> bool:
+        """A row of :data:`BUILTINS` (named by strings), not a plugin's registered objects."""
+        return isinstance(self.factory_target, str)
+
+    @property
     def factory(self) -> Callable:
         return _resolve(self.factory_target)
 

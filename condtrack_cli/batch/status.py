@@ -98,8 +98,9 @@ def batch_status(out_dir: str | Path) -> BatchStatus:
                   for identity, record in zip(identities, records) if record["status"] == "ok"}
     inputs = []
     for identity, record in latest.items():
-        status, output, error = record["status"], str(out_dir / Path(record["output"]).name), record.get("error")
-        writer = written_by.get(Path(output).name, identity)
+        name = Path(record["output"]).name
+        status, output, error = record["status"], str(out_dir / name), record.get("error")
+        writer = written_by.get(name, identity)
         if status in ("ok", "skipped") and not Path(output).exists():
             status = "missing"
         elif status in ("ok", "skipped") and writer != identity:  # a batch of another input wrote that name since
