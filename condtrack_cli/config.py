@@ -374,7 +374,22 @@ def load_config(
         reason = _unused_because(config, key_path)
         if reason:
             warn(f"{name} has no effect: {reason}")
+    for message in _unwritten_extras(config):
+        warn(message)
     return config
+
+
+def _unwritten_extras(config: Config) -> list[str]:
+    """A warning for each ``output.store_<name>`` switched on (by any source) whose dataset ``config``'s method does not
+    write (its settings' ``extras``): ``store_particles`` under ``clf``, ``store_segmentation`` under ``cnlf``."""
+    method = config.method
+    messages = []
+    for name in ("particles", "segmentation"):
+        if getattr(config.output, f"store_{name}") and name not in registry.get("filter", method).settings.extras:
+            writers = [other for other in valid_methods() if name in registry.get("filter", other).settings.extras]
+            messages.append(f"output.store_{name} has no effect: method '{method}' writes no {name} "
+                            f"(-m {' or -m '.join(writers)} would)")
+    return messages
 
 
 def _warn_overridden(sets: list[tuple[str, tuple[list[str], Any]]],

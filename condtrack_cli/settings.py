@@ -44,6 +44,9 @@ class StageSettings(BaseModel):
     input is opened or output made. ``unbounded_floats`` names the float fields that only compare
     (a threshold such as ``output.max_std``, where 1e16 means "never"), exempt from ``MAX_FLOAT_SETTING``;
     ``odd_fields`` the integer fields that must be odd (patch sides with a centre pixel; null passes).
+    ``extras`` (a filter's settings only) names the optional datasets its tracker can write, each switched on by
+    ``output.store_<name>`` (``particles``: the CNLF's; ``segmentation``: ``auto``'s): the switch of one it does
+    not write gets a warning when the config is read.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True, strict=True, allow_inf_nan=False)
@@ -54,6 +57,7 @@ class StageSettings(BaseModel):
     smoother: ClassVar[str] = ""
     unbounded_floats: ClassVar[tuple[str, ...]] = ()
     odd_fields: ClassVar[tuple[str, ...]] = ()
+    extras: ClassVar[tuple[str, ...]] = ()
 
     def least_longer_side(self) -> int:
         """The shortest longer side (px) of a frame this stage can run on (1: any; OpenCV's DIS needs 12)."""

@@ -334,6 +334,26 @@ def test_a_set_on_a_filter_the_method_does_not_use_is_warned(tmp_path):
     ]
 
 
+def test_a_stored_dataset_the_run_cannot_write_is_warned(tmp_path):
+    """output.store_particles under clf (no particles), output.store_segmentation under cnlf (only auto segments) and
+    either into a CSV (no room for them) did nothing without a word (probe round 15); each now says so."""
+    def effects(method, out):
+        result = run_cli("track", str(SAMPLE), "-m", method, "--set", "output.store_particles=true",
+                         "--set", "output.store_segmentation=true", "-o", str(tmp_path / out))
+        assert result.returncode == 0, result.stderr
+        return [line for line in result.stderr.splitlines() if "has no effect" in line]
+
+    assert effects("clf", "clf.h5") == [
+        "warning: output.store_particles has no effect: method 'clf' writes no particles (-m auto or -m cnlf would)",
+        "warning: output.store_segmentation has no effect: method 'clf' writes no segmentation (-m auto would)",
+    ]
+    assert effects("cnlf", "cnlf.csv") == [
+        "warning: output.store_segmentation has no effect: method 'cnlf' writes no segmentation (-m auto would)",
+        "warning: output.store_particles has no effect: a CSV holds no particles (write an .h5 file for them)",
+    ]
+    assert effects("auto", "auto.h5") == []
+
+
 def test_messages_show_values_plainly_and_name_an_input_once(tmp_path):
     """Issue 28.20: no ``np.str_('abc')`` in a message, and a quiet batch does not print "Error: empty: empty: ..."."""
     tracks = tmp_path / "t.csv"

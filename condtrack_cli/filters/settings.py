@@ -120,6 +120,7 @@ class MDRSettings(InitialStateSettings):
 
 class CNLFSettings(MeasuredFilterSettings):
     smoother = "ffbsm"
+    extras = ("particles",)
     particles: int = Field(100, ge=1, le=10000, description="particles per point (the paper's N = 100)")
     ess_fraction: float = Field(0.5, gt=0, le=1, description="resample when the effective sample size falls below this x N")
     resampling: Literal["systematic", "residual"] = Field("systematic", description="resampling scheme")
@@ -139,6 +140,7 @@ class CNLFSettings(MeasuredFilterSettings):
 class AutoSettings(StageSettings):
     filter_sections = ("clf", "cnlf")
     smoother = "rts+ffbsm"
+    extras = ("particles", "segmentation")
     integration_frames: int = Field(3, ge=1, description="frames over which a point's evidence is averaged")
     evidence_margin: float = Field(
         0.5, ge=0, description="change filter when the averaged evidence passes +- this (half squared Mahalanobis units)"
