@@ -177,7 +177,7 @@ def track_sequence(
     seed = int(seed)  # np.int32(3) or np.uint8(3) is the seed 3, written as the file's int64 like any seed
     given = queries
     frames_stage = config.stage("frames")
-    source = registry.get("frames", frames_stage.name).factory(frames_stage.settings, str(input_path))
+    source = registry.get("frames", frames_stage.name).build(frames_stage.settings, str(input_path))
     info = source.info
     config.check_fits_frame(info.width, info.height, detecting=queries is None, where=info.input)
     if queries is None or isinstance(queries, (str, os.PathLike)):

@@ -58,10 +58,11 @@ MOTION_THREAD = "condtrack-motion-ahead"
 
 
 def build_stage(config: Config, kind: str):
-    """The configured stage of ``kind`` ('motion', 'measure'), built from its settings alone."""
+    """The configured stage of ``kind`` ('motion', 'measure'), built from its settings alone (a plugin's guarded:
+    ``registry.StageSpec.build``)."""
     stage = config.stage(kind)
     spec = registry.get(kind, stage.name)
-    built = spec.factory(stage.settings)
+    built = spec.build(stage.settings)
     if kind == "measure" and not spec.builtin:  # a plugin's: its outputs checked
         return CheckedMeasurer(built, stage.name)
     return built
@@ -70,14 +71,14 @@ def build_stage(config: Config, kind: str):
 def detect_queries(config: Config, first: Frame, info: SequenceInfo) -> Queries:
     """Queries detected on the first frame with the configured detector (its output checked: ``queries.py``)."""
     stage = config.stage("detect")
-    xy = registry.get("detect", stage.name).factory(stage.settings, first.gray)
+    xy = registry.get("detect", stage.name).build(stage.settings, first.gray)
     return detected_queries(xy, info, stage.name)
 
 
 def build_tracker(config: Config, queries: Queries, info: SequenceInfo, rng: np.random.Generator,
                   motion: MotionStages) -> Tracker:
     """The configured filter (``config.method``), its factory handed every keyword of ``filters/interface.py``."""
-    return registry.get("filter", config.method).factory(
+    return registry.get("filter", config.method).build(
         config.filters[config.method], queries=queries, info=info, rng=rng,
         measure=build_stage(config, "measure"), gamma=config.stage("measure").settings.gamma,
         state_noise=motion.state_noise, smooth=config.smooth, store_particles=config.output.store_particles,

@@ -12,11 +12,16 @@ settings, so the filters' models live apart from the filters
 
 Third-party packages add stages through the entry-point group
 ``condtrack.stages``: each entry point names a module (imported, so that its
-:func:`register` calls run) or a callable (called with no argument).
+:func:`register` calls run) or a callable (called with no argument). Such a
+plugin's stage is built with :meth:`StageSpec.build`, which calls it through
+:meth:`StageSpec.call`: an exception of its own is a one-line CondtrackError
+naming the stage, chained to it; a built-in's bug keeps its traceback.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from dataclasses import dataclass
 from importlib import import_module, metadata
 from typing import TYPE_CHECKING, Callable
@@ -24,7 +29,7 @@ from typing import TYPE_CHECKING, Callable
 if TYPE_CHECKING:  # the settings models' base; pydantic itself loads with the first stage
     from pydantic import BaseModel
 
-from condtrack_cli.errors import plain, warn
+from condtrack_cli.errors import CondtrackError, plain, warn
 
 #: The kinds of stage, in data-flow order.
 KINDS = ("frames", "detect", "motion", "measure", "filter", "output")
@@ -97,6 +102,65 @@ class StageSpec:
     @property
     def settings(self) -> type[BaseModel]:
         return _resolve(self.settings_target)
+
+    def build(self, *args, **kwargs):
+        """The stage, ``factory(*args, **kwargs)``; a plugin's called through :meth:`call`, and so are the methods of
+        what it builds (:class:`PluginStage`: a frame source, a motion stage's estimators, a measurer, a tracker).
+        A detect or output stage's factory is the stage's whole work: its value is returned as it is."""
+        built = self.call(self.factory, *args, **kwargs)
+        if self.builtin or self.kind in ("detect", "output"):
+            return built
+        if self.kind == "motion":  # a MotionStages (motion/interface.py): its state noise is condtrack's StateNoise
+            return dataclasses.replace(built, global_motion=PluginStage(built.global_motion, self),
+                                       local_motion=PluginStage(built.local_motion, self))
+        return PluginStage(built, self)
+
+    def call(self, function: Callable, *args, **kwargs):
+        """``function(*args, **kwargs)``, a call into this stage. For a plugin's, an exception it raises (not a
+        CondtrackError, nor a MemoryError) is a CondtrackError naming the stage and the plugin, chained to it
+        (``__cause__``): one ``Error:`` line on the command line. A built-in's bug keeps its traceback."""
+        if self.builtin:
+            return function(*args, **kwargs)
+        try:
+            return function(*args, **kwargs)
+        except (CondtrackError, MemoryError):
+            raise
+        except Exception as error:
+            message = " ".join(str(error).split())  # one line
+            plugin = getattr(self.factory_target, "__module__", None) or "?"  # the module of its factory
+            raise CondtrackError(f"{self.kind} stage '{self.name}' (plugin {plugin}) raised {type(error).__name__}"
+                                 f"{': ' + message if message else ''}") from error
+
+
+#: The method of a stage that returns another stage (measure/interface.py: ``resized``), guarded as well.
+_STAGE_RETURNING = ("resized",)
+_END = object()
+
+
+class PluginStage:
+    """A plugin's stage object, each of its methods called through :meth:`StageSpec.call` (iterating it too): what
+    they raise names the stage. Every other attribute is the stage's own (``hasattr`` answers as for the stage)."""
+
+    def __init__(self, stage, spec: StageSpec):
+        self._stage, self._spec = stage, spec
+
+    def __getattr__(self, attribute: str):
+        found = getattr(self._stage, attribute)
+        if not callable(found):
+            return found
+        if attribute in _STAGE_RETURNING:
+            return lambda *args, **kwargs: PluginStage(self._spec.call(found, *args, **kwargs), self._spec)
+        return functools.partial(self._spec.call, found)
+
+    def __iter__(self):
+        items = self._spec.call(iter, self._stage)
+        try:
+            while (item := self._spec.call(next, items, _END)) is not _END:
+                yield item
+        except GeneratorExit:  # left early: a generator (a video reader's) released now, not at collection
+            if items is not self._stage and hasattr(items, "close"):
+                self._spec.call(items.close)
+            raise
 
 
 _STAGES: dict[str, dict[str, StageSpec]] = {

@@ -5,7 +5,8 @@ factory called ``factory(settings, path) -> FrameSource``; it raises
 :class:`condtrack_cli.errors.CondtrackError` naming the path when the input cannot
 be read. Frames are in the package's pixel convention (``condtrack_cli/types.py``).
 The pipeline iterates a source (``iter``) once, on a reader thread, one frame ahead
-of the tracking (``prefetch.py``); its errors reach the caller unchanged. The
+of the tracking (``prefetch.py``); its errors reach the caller unchanged (a
+plugin's own exceptions as a CondtrackError naming the stage: ``registry.StageSpec.call``). The
 backward pass reads the frames the forward pass kept (``frame_reports.FrameStore``).
 The built-in stages are rows of ``registry.BUILTINS`` instead.
 """

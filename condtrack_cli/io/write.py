@@ -144,9 +144,9 @@ def write_tracks(tracks: Tracks, path: str | Path, info: SequenceInfo, meta: dic
     except ValueError as error:
         method = f" (filter '{meta['method']}')" if meta.get("method") else ""
         raise CondtrackError(f"{path}: not written: {error}{method}") from None
-    writer = get("output", track_format(path, "output")).factory
+    writer = get("output", track_format(path, "output"))
     with atomic_path(path) as temporary:
         try:
-            writer(tracks, temporary, info, meta, settings)
+            writer.build(tracks, temporary, info, meta, settings)
         except OSError as error:  # h5py reports a full disk as OSError with errno ENOSPC, as Python does
             raise write_error(path, error) from None
