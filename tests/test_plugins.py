@@ -52,17 +52,22 @@ HOLD_PACKAGE = '''
 '''
 
 
+def installed(site, module, source, entry):
+    """``site``, a folder holding the package ``module`` (its ``source``) and its dist-info with the
+    ``condtrack.stages`` entry point ``entry = module``."""
+    site.mkdir(exist_ok=True)
+    (site / f"{module}.py").write_text(textwrap.dedent(source))
+    info = site / f"{module}-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {module.replace('_', '-')}\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text(f"[condtrack.stages]\n{entry} = {module}\n")
+    return site
+
+
 @pytest.fixture
 def hold_package(tmp_path):
     """A folder holding the package ``thirdparty_hold`` and its dist-info with a ``condtrack.stages`` entry point."""
-    site = tmp_path / "site"
-    site.mkdir()
-    (site / "thirdparty_hold.py").write_text(textwrap.dedent(HOLD_PACKAGE))
-    info = site / "thirdparty_hold-1.0.dist-info"
-    info.mkdir()
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: thirdparty-hold\nVersion: 1.0\n")
-    (info / "entry_points.txt").write_text("[condtrack.stages]\nhold = thirdparty_hold\n")
-    return site
+    return installed(tmp_path / "site", "thirdparty_hold", HOLD_PACKAGE, "hold")
 
 
 def run_with(site, *args):
@@ -262,3 +267,127 @@ def test_a_stage_whose_settings_are_not_stage_settings_is_not_registered():
         assert "plain" not in registry.names("detect")
     finally:
         registry._STAGES["detect"].pop("plain", None)
+
+
+#: A filter package whose tracker fails on frame 1 with an exception of its own.
+BROKEN_PACKAGE = '''
+    import numpy as np
+    from condtrack_cli.settings import StageSettings
+    from condtrack_cli.filters.base import Tracker
+    from condtrack_cli.registry import register
+
+    class BrokenSettings(StageSettings):
+        pass
+
+    class BrokenTracker(Tracker):
+        method = "broken"
+
+        def _start(self, index, frame):
+            self.cov[index] = np.eye(2)
+
+        def _advance(self, index, prev, frame, motion):
+            raise RuntimeError("out of cheese")
+
+    @register("filter", "broken", BrokenSettings)
+    def make_broken(settings, queries, info, **_context):
+        return BrokenTracker(queries, info)
+'''
+
+
+@pytest.mark.parametrize("suffix", [".h5", ".csv"])
+def test_a_plugin_stage_raising_is_one_error_line_and_no_output(tmp_path, suffix):
+    """A plugin's filter raising a RuntimeError of its own ended `condtrack track` in a traceback; now one `Error:`
+    line names the stage, the plugin and the exception, the exit code is 1 and no output file is left."""
+    site = installed(tmp_path / "site", "thirdparty_broken", BROKEN_PACKAGE, "broken")
+    output = tmp_path / f"out{suffix}"
+    done = run_with(site, "-m", "condtrack_cli", "track", str(SAMPLE), "-p", str(SAMPLE / "queries.csv"),
+                    "-m", "broken", "-o", str(output), "-q")
+    assert done.returncode == 1
+    assert done.stderr == ("Error: filter stage 'broken' (plugin thirdparty_broken) raised RuntimeError: "
+                           "out of cheese\n")
+    assert not output.exists() and sorted(path.name for path in tmp_path.iterdir()) == ["site"]
+
+
+class RaisingSettings(StageSettings):
+    pass
+
+
+def raising(*_args, **_kwargs):
+    raise RuntimeError("out of cheese")
+
+
+def raising_stage(kind: str):
+    """A factory of ``kind`` whose stage raises RuntimeError in the method the pipeline calls (the factory itself
+    for detect), the rest of its work the built-in stage's."""
+    from condtrack_cli.filters.base import Tracker
+    from condtrack_cli.frames.readers import FrameSettings, open_frames
+    from condtrack_cli.measure.ssd import SSDMeasure
+    from condtrack_cli.motion.local import make_robust_motion
+    from condtrack_cli.motion.robust import RobustMotionSettings
+
+    class Frames:
+        def __init__(self, path):
+            self.source = open_frames(FrameSettings(), path)
+            self.info = self.source.info
+
+        def __iter__(self):
+            yield next(iter(self.source))
+            raising()
+
+    class Measure(SSDMeasure):
+        measure = raising
+
+    def motion(settings):
+        built = make_robust_motion(RobustMotionSettings())
+        return dataclasses.replace(built, global_motion=type("Fit", (), {"fit": raising})())
+
+    class Raising(Tracker):
+        method = "raising"
+
+        def _start(self, index, frame):
+            self.cov[index] = np.eye(2)
+
+        _advance = raising
+
+    return {"frames": lambda settings, path: Frames(path), "detect": raising, "motion": motion,
+            "measure": lambda settings: Measure(settings),
+            "filter": lambda settings, queries, info, **_context: Raising(queries, info)}[kind]
+
+
+@pytest.mark.parametrize("kind", ["frames", "detect", "motion", "measure", "filter"])
+def test_a_plugin_stage_raising_is_a_condtrack_error_chained_to_its_exception(kind):
+    """In Python, what a plugin's stage raises is a CondtrackError naming the stage, its ``__cause__`` the plugin's
+    own exception (its traceback), wherever the pipeline calls the stage (the motion on its own thread too)."""
+    from condtrack_cli.measure.response import SSDSettings
+
+    settings = SSDSettings if kind == "measure" else RaisingSettings
+    registry.register(kind, "raising", settings)(raising_stage(kind))
+    config = {"filter": {"method": "raising"}} if kind == "filter" else {kind: {"name": "raising"}, "filter": {
+        "method": "clf"}}
+    queries = None if kind == "detect" else SAMPLE / "queries.csv"
+    try:
+        with pytest.raises(ct.CondtrackError, match=rf"^{kind} stage 'raising' \(plugin [\w.]*test_plugins\) raised "
+                                                    r"RuntimeError: out of cheese$") as raised:
+            ct.track(str(SAMPLE), queries=queries, config=config)
+        assert isinstance(raised.value.__cause__, RuntimeError)
+    finally:
+        registry._STAGES[kind].pop("raising", None)
+
+
+def test_only_a_plugin_stage_is_wrapped_a_built_in_bug_keeps_its_exception(monkeypatch):
+    """The same failing measurement: from a plugin, a CondtrackError; in the built-in SSD stage, the RuntimeError
+    itself and its traceback (a bug report)."""
+    from condtrack_cli.measure.response import SSDSettings
+    from condtrack_cli.measure.ssd import SSDMeasure
+
+    track = functools.partial(ct.track, str(SAMPLE), queries=SAMPLE / "queries.csv", method="clf")
+    registry.register("measure", "raising", SSDSettings)(raising_stage("measure"))
+    try:
+        with pytest.raises(ct.CondtrackError, match="measure stage 'raising'"):
+            track(config={"measure": {"name": "raising"}})
+    finally:
+        registry._STAGES["measure"].pop("raising", None)
+    monkeypatch.setattr(SSDMeasure, "measure", raising)
+    with pytest.raises(RuntimeError, match="out of cheese") as raised:
+        track()
+    assert not isinstance(raised.value, ct.CondtrackError)
