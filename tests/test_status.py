@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from condtrack_cli import __version__
-from condtrack_cli.batch.manifest import ClipRecord, append_record
+from condtrack_cli.batch.manifest import ClipRecord, append_records
 from condtrack_cli.cli import cli, main
 from condtrack_cli.config import load_config
 from condtrack_cli.errors import MissingInput
@@ -25,7 +25,7 @@ def record(out_dir, name: str, status: str, seconds: float, error: str | None = 
            cwd=""):
     """Append a manifest line for data/<name>/frames, written to OUT_DIR/<name>_frames<suffix>; ``cwd``: the batch's
     folder ("": not recorded, as in older manifests)."""
-    append_record(out_dir, ClipRecord(
+    append_records(out_dir, ClipRecord(
         input=f"data/{name}/frames", output=str(out_dir / f"{name}_frames{suffix}"), status=status, error=error,
         seconds=seconds, frames=None if error else 5, points=None if error else 12, method="stk",
         config_hash=config, version=__version__, seed=0, queries_hash="", cwd=cwd))
@@ -99,7 +99,7 @@ def test_an_output_replaced_by_another_input_s_of_the_same_name_is_missing(tmp_p
     """x/frames then y/frames, each batched alone into one OUT_DIR, both write frames.h5: status said both were ok,
     though the file on disk was y's; x's is missing, named as replaced, and redone."""
     for name in ("x", "y"):
-        append_record(tmp_path, ClipRecord(
+        append_records(tmp_path, ClipRecord(
             input=f"{name}/frames", output=str(tmp_path / "frames.h5"), status="ok", error=None, seconds=1.0, frames=5,
             points=12, method="stk", config_hash=STK, version=__version__, seed=0, queries_hash="", cwd=str(tmp_path)))
     (tmp_path / "frames.h5").write_bytes(b"")

@@ -22,7 +22,7 @@ import click
 from condtrack_cli.batch.dask import connect_dask, run_dask
 from condtrack_cli.batch.job import interrupted_record, staged_output
 from condtrack_cli.batch.local import run_local, sigterm_exits
-from condtrack_cli.batch.manifest import ClipRecord, append_record
+from condtrack_cli.batch.manifest import ClipRecord, append_records
 from condtrack_cli.batch.plan import plan_batch
 from condtrack_cli.batch.report import ClipProgress, report_end
 from condtrack_cli.config import Config
@@ -72,7 +72,7 @@ def run_batch(
         def finished(record: ClipRecord) -> None:
             with held_signals():  # no interrupt between moving the output in place and writing its line
                 record = _published(record, staging)
-                append_record(Path(out_dir), record)
+                append_records(Path(out_dir), record)
                 records[record.input] = record
             progress(record)
 
@@ -89,9 +89,8 @@ def run_batch(
                 else:
                     run_local(todo, jobs, finished)
             except (KeyboardInterrupt, SystemExit):  # the manifest says what did not end
-                for job in plan.todo:
-                    if job.input not in records:
-                        append_record(Path(out_dir), interrupted_record(job))
+                append_records(Path(out_dir),
+                               *(interrupted_record(job) for job in plan.todo if job.input not in records))
                 raise
     if report_end([records[job.input] for job in plan.jobs], config.method, Path(out_dir), quiet):
         sys.exit(1)

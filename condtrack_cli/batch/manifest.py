@@ -20,7 +20,7 @@ MANIFEST = "manifest.jsonl"
 #: A record's statuses: "interrupted" when the batch was stopped before the input ended.
 RECORD_STATUSES = ("ok", "failed", "skipped", "interrupted")
 
-#: How ``append_record`` ends a line cut short (a kill or a full disk during its write) before the next record.
+#: How ``append_records`` ends a line cut short (a kill or a full disk during its write) before the next record.
 CUT_SHORT = " <- cut short: the rest of this line was never written"
 
 #: The Python types of the JSON values a record's fields are checked against (``read_manifest``).
@@ -56,7 +56,7 @@ def read_manifest(out_dir: Path, fields: dict[str, str] | None = None) -> list[d
     """The manifest's records, oldest first; [] without a manifest.
 
     Blank lines are skipped, and so is a line cut short by a kill or a full disk: the last line when it has no
-    newline, or one that ``append_record`` ended with ``CUT_SHORT`` before its record. Other broken lines
+    newline, or one that ``append_records`` ended with ``CUT_SHORT`` before its record. Other broken lines
     are skipped, unless ``fields`` (name -> a ``JSON_TYPES`` name) is given: then a line that
     is not a JSON object with those fields, or whose status is not one of
     ``RECORD_STATUSES``, is a CondtrackError naming the file and the line.
@@ -108,14 +108,14 @@ def _record_problem(record, fields: dict[str, str]) -> str | None:
 def open_manifest(out_dir: Path) -> int:
     """A descriptor appending to the manifest, created when missing; CondtrackError naming it when it cannot be
     written (a folder of that name, a read-only file)."""
-    try:  # read too: append_record reads the last byte
+    try:  # read too: append_records reads the last byte
         return os.open(out_dir / MANIFEST, os.O_RDWR | os.O_APPEND | os.O_CREAT, 0o666)
     except OSError as error:
         raise write_error(out_dir / MANIFEST, error) from None
 
 
 def _ending(descriptor: int) -> str:
-    """What ends the manifest's last line before a record is appended (``append_record``): "" when it ends already."""
+    """What ends the manifest's last line before a record is appended (``append_records``): "" when it ends already."""
     size = os.fstat(descriptor).st_size
     tail = os.pread(descriptor, min(size, 1 << 16), max(size - (1 << 16), 0))
     if not tail or tail.endswith(b"\n"):
@@ -127,15 +127,19 @@ def _ending(descriptor: int) -> str:
     return "\n"
 
 
-def append_record(out_dir: Path, record: ClipRecord) -> None:
-    """Append one line to the manifest with a single write (O_APPEND: shards sharing OUT_DIR do not interleave).
+def append_records(out_dir: Path, *records: ClipRecord) -> None:
+    """Append one line per record to the manifest with a single write (O_APPEND: shards sharing OUT_DIR do not
+    interleave).
 
-    After a last line without a newline (a kill or a full disk during its write), which the record would extend
+    After a last line without a newline (a kill or a full disk during its write), which the records would extend
     into a broken line of both, that line is first ended: with ``CUT_SHORT`` (``read_manifest`` skips it) when it
     is cut short, with a newline alone when it is a whole record."""
+    if not records:
+        return
     descriptor = open_manifest(out_dir)
     try:
-        os.write(descriptor, (_ending(descriptor) + record.to_json() + "\n").encode("utf-8"))
+        lines = "".join(record.to_json() + "\n" for record in records)
+        os.write(descriptor, (_ending(descriptor) + lines).encode("utf-8"))
     except OSError as error:
         raise write_error(out_dir / MANIFEST, error) from None
     finally:
