@@ -48,8 +48,10 @@ def make_clips(root: Path, count: int, n_frames: int | list[int] = 5) -> list[st
     return clips
 
 
-def manifest(out_dir: Path) -> list[dict]:
-    return [json.loads(line) for line in (out_dir / MANIFEST).read_text().splitlines()]
+def manifest(out_dir: Path, planned: bool = False) -> list[dict]:
+    """The manifest's records: the inputs' ends, and with ``planned`` the batches' plans too."""
+    records = [json.loads(line) for line in (out_dir / MANIFEST).read_text().splitlines()]
+    return [record for record in records if planned or record["status"] != "planned"]
 
 
 def outputs(out_dir: Path) -> dict[str, bytes]:
@@ -94,6 +96,10 @@ def test_batch_creates_out_dir_names_same_named_inputs_and_writes_the_manifest(c
     assert sorted(p.name for p in out_dir.iterdir()) == ["clip000_frames.h5", "clip001_frames.h5", MANIFEST]
     records = manifest(out_dir)
     assert sorted(r["input"] for r in records) == sorted([*clips[:2], str(broken)])
+    plan = manifest(out_dir, planned=True)[:3]  # written as the batch starts, before any end
+    names = ["clip000_frames.h5", "clip001_frames.h5", "broken_frames.h5"]
+    assert [(r["input"], r["output"], r["status"]) for r in plan] == [
+        (clip, str(out_dir / name), "planned") for clip, name in zip([*clips[:2], str(broken)], names)]
     for record in records:
         assert MANIFEST_FIELDS <= set(record), record
         assert (record["method"], record["seed"], record["version"]) == ("stk", 3, "0.1.0")
@@ -115,6 +121,7 @@ def test_batch_creates_out_dir_names_same_named_inputs_and_writes_the_manifest(c
     assert again.returncode == 1 and again.stderr.count(f"Error: {broken}: ") == 1
     status = {r["input"]: r["status"] for r in manifest(out_dir)[3:]}
     assert status == {clips[0]: "skipped", clips[1]: "skipped", str(broken): "failed"}
+    assert [(r["input"], r["status"]) for r in manifest(out_dir, planned=True)[6:7]] == [(str(broken), "planned")]
 
 
 def test_config_hash_follows_the_resolved_config():

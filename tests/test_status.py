@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import json
+import os
 import shlex
 import signal
+import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
@@ -204,6 +207,74 @@ def test_interrupted_inputs_are_counted_and_redone_without_an_output(tmp_path):
     assert report["redo"] == [result.stdout.splitlines()[-1].strip()] and report["notes"] == []
 
 
+#: A batch whose process SIGKILLs itself (as the OOM killer would) as its input ``data/c2`` starts.
+KILLED_AT_C2 = """
+import os, signal
+from condtrack_cli.batch import local
+from condtrack_cli.cli import main
+run_job = local.run_job
+local.run_job = lambda job: os.kill(os.getpid(), signal.SIGKILL) if job.input == "data/c2" else run_job(job)
+main()
+"""
+
+
+def test_inputs_of_a_batch_killed_with_sigkill_are_interrupted_and_redone(tmp_path, monkeypatch, capsys):
+    """A batch killed by SIGKILL (the OOM killer, a power loss) records nothing for the inputs it had not ended, so
+    status listed only the ended ones and printed no redo: the others were forgotten. The batch now records its plan
+    as it starts, and an input planned but never ended is interrupted, counted and redone."""
+    for seed, name in enumerate(("c1", "c2", "c3")):
+        write_scene(make_scene("camera_motion", seed=seed, size=(160, 120), n_frames=5), tmp_path / "data" / name)
+    killed = subprocess.run(
+        [sys.executable, "-c", KILLED_AT_C2, "track", "data/c1", "data/c2", "data/c3", "-m", "stk", "--out-dir", "out",
+         "-q"], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+        env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    assert killed.returncode == -signal.SIGKILL, killed.stderr
+    monkeypatch.chdir(tmp_path)
+    code, out, _ = _main(["status", "out"], monkeypatch, capsys)
+    never = "never ended (the batch was killed, or is still running): no output"
+    assert code == 1 and out.splitlines() == [
+        f"ok           {tmp_path}/data/c1  out/c1.h5",
+        f"interrupted  {tmp_path}/data/c2  {never}",
+        f"interrupted  {tmp_path}/data/c3  {never}",
+        out.splitlines()[3],  # the time taken varies
+        "redo the failed, interrupted and missing inputs:",
+        f"  condtrack track {tmp_path}/data/c2 {tmp_path}/data/c3 --out-dir {tmp_path}/out -m stk --seed 0",
+    ]
+    assert out.splitlines()[3].startswith("3 inputs: 1 ok, 2 interrupted; ")
+    redo = shlex.split(out.splitlines()[-1])[1:]
+    assert _main([*redo, "-q"], monkeypatch, capsys) == (0, "", "")
+    code, out, _ = _main(["status", "out"], monkeypatch, capsys)
+    assert code == 0 and out.splitlines()[:3] == [  # the killed attempt counts; the plans that ended do not
+        f"ok       {tmp_path}/data/c1  out/c1.h5", f"ok       {tmp_path}/data/c2  out/c2.h5 (2 attempts)",
+        f"ok       {tmp_path}/data/c3  out/c3.h5 (2 attempts)"]
+
+
+def test_a_plan_is_ended_by_the_next_record_of_its_input_and_output(tmp_path):
+    """A ``planned`` record followed by its input's end is no attempt of its own; one followed by nothing, or by a
+    plan of another batch, is an attempt that never ended; one followed by the end of another output of its input
+    (another --format) is that other output's run, not this one's end."""
+    out = tmp_path / "o"
+    out.mkdir()
+    folder = str(tmp_path)
+    for name, status_, seconds, error, suffix in [
+            ("a", "planned", 0.0, None, ".h5"), ("b", "planned", 0.0, None, ".h5"), ("a", "ok", 2.0, None, ".h5"),
+            ("c", "planned", 0.0, None, ".h5"), ("c", "interrupted", 0.0, "interrupted", ".h5"),  # Ctrl-C
+            ("d", "planned", 0.0, None, ".h5"), ("d", "planned", 0.0, None, ".h5"), ("d", "ok", 1.0, None, ".h5"),
+            ("e", "planned", 0.0, None, ".csv"), ("e", "planned", 0.0, None, ".h5"), ("e", "ok", 1.0, None, ".csv")]:
+        record(out, name, status_, seconds, error, suffix=suffix, cwd=folder)
+    for name in ("a_frames.h5", "d_frames.h5", "e_frames.csv"):
+        (out / name).write_bytes(b"")
+    report = json.loads(status(str(out), "--json").stdout)
+    assert [(i["input"][len(folder):], i["status"], i["error"], i["attempts"]) for i in report["inputs"]] == [
+        ("/data/a/frames", "ok", None, 1),
+        ("/data/b/frames", "interrupted", "never ended (the batch was killed, or is still running)", 1),
+        ("/data/c/frames", "interrupted", "interrupted", 1),
+        ("/data/d/frames", "ok", None, 2),
+        ("/data/e/frames", "ok", None, 2)]
+    assert report["counts"]["interrupted"] == 2 and report["seconds_all_attempts"] == 4.0
+    assert status(str(out)).stdout.splitlines()[2].endswith("  stopped before it ended: no output")
+
+
 def test_a_batch_with_queries_whose_inputs_all_failed_says_to_add_p(tmp_path, monkeypatch, capsys):
     """A failed (or interrupted) input's record had an empty queries_hash, so when no input of a batch run with -p
     ended ok the redo command lacked -p and no note said to add it: the redo would detect points instead. Every
@@ -240,7 +311,7 @@ def test_a_batch_with_queries_whose_inputs_all_failed_says_to_add_p(tmp_path, mo
     ('{"input": "a", "output": "a.h5", "status": "ok", "seconds": 1, "method": "stk", "seed": "0", "config_hash": ""}',
      "'seed' is \"0\", not an integer"),
     ('{"input": "a", "output": "a.h5", "status": "done", "seconds": 1, "method": "stk", "seed": 0, '
-     '"config_hash": ""}', 'unknown status "done" (not one of ok, failed, skipped, interrupted)'),
+     '"config_hash": ""}', 'unknown status "done" (not one of ok, failed, skipped, interrupted, planned)'),
     ('{"input": "a", "output": "a.h', "not a JSON record"),
     ("[1, 2]", "not a JSON object"),
 ], ids=["no status", "no output", "no seconds", "seconds a string", "seconds NaN", "seconds -inf", "seed a string",

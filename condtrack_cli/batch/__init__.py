@@ -5,8 +5,8 @@ The modules follow a batch's flow, each called once from ``run_batch``:
 - ``plan``: inputs -> jobs (output names, shard, what --skip-existing skips), refusals before any work;
 - ``job``: one job, run in whichever process (the same bytes everywhere), writing into the batch's staging folder;
 - ``local`` / ``dask``: execute the jobs in a process pool or on a Dask cluster, and stop them on an interrupt;
-- ``manifest``: record each input's end in ``OUT_DIR/manifest.jsonl`` (``status`` reads it for ``condtrack status``),
-  with its output moved in place from the staging folder at the same moment (``run_batch``);
+- ``manifest``: record the plan, then each input's end, in ``OUT_DIR/manifest.jsonl`` (``status`` reads it for
+  ``condtrack status``), with its output moved in place from the staging folder at the same moment (``run_batch``);
 - ``report``: a progress line per input, the final table and the failures.
 """
 
@@ -20,7 +20,7 @@ from pathlib import Path
 import click
 
 from condtrack_cli.batch.dask import connect_dask, run_dask
-from condtrack_cli.batch.job import interrupted_record, staged_output
+from condtrack_cli.batch.job import interrupted_record, planned_record, staged_output
 from condtrack_cli.batch.local import run_local, sigterm_exits
 from condtrack_cli.batch.manifest import ClipRecord, append_records
 from condtrack_cli.batch.plan import plan_batch
@@ -80,6 +80,8 @@ def run_batch(
         # by a batch killed with SIGKILL (no clean-up runs), the outputs it had not moved in place, by the next batch.
         remove_dead_folders(out_dir, STAGING_STEM)
         with sigterm_exits(), staging_folder(Path(out_dir) / owned_name(STAGING_STEM[1:])) as staging:
+            # The plan first: an input that a kill (SIGKILL, out of memory) stops has a record, with no end after it.
+            append_records(Path(out_dir), *map(planned_record, plan.todo))
             for record in plan.skipped:
                 finished(record)
             todo = [replace(job, staging=str(staging)) for job in plan.todo]

@@ -1,5 +1,5 @@
 """One job of a batch: ``BatchJob`` (input -> output, picklable), ``run_job``, its run in whichever process, and
-``job_record``, the manifest record it ends with.
+``job_record``, the manifest record it ends with (``planned_record``: the one the batch starts with).
 
 ``run_local`` and ``run_dask`` both run ``run_job``, so the outputs are the same
 bytes; on Dask the job also looks at its batch's stop Event while it runs. The
@@ -11,7 +11,7 @@ leaves an output without its manifest line.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from condtrack_cli import __version__
@@ -60,9 +60,14 @@ def job_record(job: BatchJob, status: str, **values) -> ClipRecord:
     )
 
 
+def planned_record(job: BatchJob) -> ClipRecord:
+    """The manifest record of a job the batch will run, written as it starts (its end is a later record)."""
+    return job_record(job, "planned", error=None, seconds=0.0, frames=None, points=None)
+
+
 def interrupted_record(job: BatchJob) -> ClipRecord:
     """The manifest record of a job that the batch's interrupt stopped (or never started)."""
-    return job_record(job, "interrupted", error="interrupted", seconds=0.0, frames=None, points=None)
+    return replace(planned_record(job), status="interrupted", error="interrupted")
 
 
 class Cancelled(CondtrackError):

@@ -1,7 +1,9 @@
 """Record: what became of each input, one ``ClipRecord`` a line in ``OUT_DIR/manifest.jsonl``.
 
-A line is appended when its input ends, so a killed batch leaves a true
-manifest; ``read_manifest`` gives the records back (for --skip-existing and
+As a batch starts it appends a ``planned`` line per input it will run (its
+plan); a line is appended when an input ends, so a killed batch leaves a true
+manifest: a ``planned`` line with no later line of its input is an input that
+never ended. ``read_manifest`` gives the records back (for --skip-existing and
 ``condtrack status``).
 """
 
@@ -17,8 +19,9 @@ from condtrack_cli.errors import CondtrackError, write_error
 
 MANIFEST = "manifest.jsonl"
 
-#: A record's statuses: "interrupted" when the batch was stopped before the input ended.
-RECORD_STATUSES = ("ok", "failed", "skipped", "interrupted")
+#: A record's statuses: "interrupted" when the batch was stopped before the input ended; "planned" when the batch
+#: started, before the input ran (the input's end is a later record).
+RECORD_STATUSES = ("ok", "failed", "skipped", "interrupted", "planned")
 
 #: How ``append_records`` ends a line cut short (a kill or a full disk during its write) before the next record.
 CUT_SHORT = " <- cut short: the rest of this line was never written"

@@ -8,7 +8,9 @@ manifests, whose paths are taken as written), are one input's. Outputs are
 looked for in OUT_DIR, where a batch writes them, whatever folder the batch or
 ``status`` runs in; an input whose last record is ``ok`` or ``skipped`` but
 whose output file is gone, or was replaced since by another input's of the same name, is
-``missing``.
+``missing``. A batch's ``planned`` record of an input is dropped once a later
+record of that input and output ends it; one that nothing ends (the batch was
+killed, or is still running) is an attempt that never ended: ``interrupted``.
 """
 
 from __future__ import annotations
@@ -34,6 +36,9 @@ REDONE = ("failed", "interrupted", "missing")
 #: The fields ``status`` reads from every record, with their JSON types (``manifest.JSON_TYPES``).
 STATUS_FIELDS = {"input": "string", "output": "string", "status": "string", "seconds": "number",
                  "method": "string", "seed": "integer", "config_hash": "string"}
+
+#: The ``error`` of an input whose latest record is its batch's plan: it is ``interrupted``, with no record of why.
+NEVER_ENDED = "never ended (the batch was killed, or is still running)"
 
 
 @dataclass(frozen=True)
@@ -91,15 +96,19 @@ def batch_status(out_dir: str | Path) -> BatchStatus:
     records = read_manifest(out_dir, STATUS_FIELDS)
     if not records:
         raise MissingInput(f"{out_dir / MANIFEST}: no manifest records (not a batch's --out-dir?)")
-    identities = [input_identity(record) for record in records]
+    every_identity = [input_identity(record) for record in records]
+    records, identities = _without_ended_plans(records, every_identity)
     attempts = Counter(identities)
-    latest = dict(zip(identities, records))  # the last record of each input wins
+    latest = dict.fromkeys(every_identity)  # in first-run order (an ended plan's too); each input's last record wins
+    latest.update(zip(identities, records))
     written_by = {Path(record["output"]).name: identity  # each output name's last writer
                   for identity, record in zip(identities, records) if record["status"] == "ok"}
     inputs = []
     for identity, record in latest.items():
         name = Path(record["output"]).name
         status, output, error = record["status"], str(out_dir / name), record.get("error")
+        if status == "planned":
+            status, error = "interrupted", NEVER_ENDED
         writer = written_by.get(name, identity)
         if status in ("ok", "skipped") and not Path(output).exists():
             status = "missing"
@@ -112,6 +121,19 @@ def batch_status(out_dir: str | Path) -> BatchStatus:
     redo, notes = _redo(inputs, list(latest.values()), records, out_dir)
     return BatchStatus(str(out_dir), inputs, sum(item.seconds for item in inputs),
                        sum(float(record["seconds"]) for record in records), redo, notes)
+
+
+def _without_ended_plans(records: list[dict], identities: list[str]) -> tuple[list[dict], list[str]]:
+    """``records`` and their inputs' ``identities`` without the ``planned`` records that the next record of the same
+    input and output name ends (one that is not ``planned``)."""
+    kept, next_status = [], {}
+    for record, identity in reversed(list(zip(records, identities))):
+        key = (identity, Path(record["output"]).name)
+        if record["status"] != "planned" or next_status.get(key, "planned") == "planned":
+            kept.append((record, identity))
+        next_status[key] = record["status"]
+    kept.reverse()
+    return [record for record, _ in kept], [identity for _, identity in kept]
 
 
 def _redo(inputs: list[InputStatus], latest: list[dict], records: list[dict],

@@ -15,11 +15,14 @@ def status_command(out_dir: str, as_json: bool) -> None:
     """Show what became of each input of the batch written into OUT_DIR (its manifest.jsonl).
 
     Per input its latest record: ok, failed (with the reason), interrupted
-    (the batch was stopped before it ended: no output), skipped, or missing
+    (the batch was stopped or killed before the input ended, or is still
+    running it: no output), skipped, or missing
     (recorded as done but its output is gone, or replaced by another input's
     of the same name); then the counts, the time taken
     and the command that redoes the failed, interrupted and missing inputs.
-    The exit code is 1 when an input's latest record is failed or interrupted.
+    A batch still running into OUT_DIR shows the inputs it has not ended yet
+    as interrupted. The exit code is 1 when an input's latest record is failed
+    or interrupted.
     """
     from condtrack_cli.batch.status import batch_status
 
@@ -37,10 +40,13 @@ NOT_ENDED = "stopped before it ended: no output"
 
 
 def _print(status) -> None:
+    from condtrack_cli.batch.status import NEVER_ENDED
+
     width = max(len(item.input) for item in status.inputs)
     status_width = max(8, 1 + max(len(item.status) for item in status.inputs))
     for item in status.inputs:
-        detail = {"failed": item.error, "interrupted": NOT_ENDED}.get(item.status, item.output)
+        never_ended = f"{NEVER_ENDED}: no output" if item.error == NEVER_ENDED else NOT_ENDED
+        detail = {"failed": item.error, "interrupted": never_ended}.get(item.status, item.output)
         if item.status == "missing":
             detail = item.error or f"{detail} is gone"
         tries = f" ({item.attempts} attempts)" if item.attempts > 1 else ""
