@@ -38,7 +38,8 @@ def read_queries(path: str | Path, info: SequenceInfo) -> Queries:
     renumber the points), and so is a row with a value beyond the header's columns.
     Without a ``point_id`` column the points are numbered 0.. in file order. A
     point must lie inside the frame ([-0.5, W-0.5] x [-0.5, H-0.5], the pixel
-    convention of docs/schema.md) and its frame in [0, n_frames).
+    convention of docs/schema.md; not checked where ``info`` has no size, width 0: a track file's, whose positions
+    need only be finite) and its frame in [0, n_frames).
     """
     path = Path(path)
     try:
@@ -124,13 +125,11 @@ def checked_queries(where: str, point_id: np.ndarray, frame: np.ndarray, xy: np.
         raise CondtrackError(f"{where}: row {rows[index]}: frame {int(frame[index])} is outside the sequence "
                              f"(0..{info.n_frames - 1})")
     frame = frame.astype(np.int64)
-    inside = info.contains(xy)
+    inside = info.contains(xy) if info.width else np.isfinite(xy).all(axis=1)  # width 0: no frame size known
     if not inside.all():
         index = int(np.argmax(~inside))
-        raise CondtrackError(
-            f"{where}: row {rows[index]}: point ({xy[index, 0]:g}, {xy[index, 1]:g}) is outside the "
-            f"{info.width}x{info.height} frame"
-        )
+        reason = f"is outside the {info.width}x{info.height} frame" if info.width else "is not finite"
+        raise CondtrackError(f"{where}: row {rows[index]}: point ({xy[index, 0]:g}, {xy[index, 1]:g}) {reason}")
     order = np.argsort(point_id, kind="stable")
     return Queries(point_id[order], frame[order], xy[order])
 
