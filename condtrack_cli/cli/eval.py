@@ -57,7 +57,11 @@ def _print_table(result: dict, notes: list[str], title: str) -> None:
 @click.option("--plot", "plot_path", type=click.Path(dir_okay=False), default=None, metavar="FILE.png",
               callback=checked(png_suffix),
               help="Also draw the reliability diagram and the normalised-error histogram (needs condtrack[plot]).")
-def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: str, plot_path: str | None) -> None:
+@click.option("--queries", "queries_path", type=click.Path(dir_okay=False), default=None, metavar="FILE",
+              help="The queries CSV PRED was tracked from (track -p): each point's query frame and position, matched "
+                   "by point_id; an HDF5 PRED's stored queries must agree with it.")
+def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: str, plot_path: str | None,
+                 queries_path: str | None) -> None:
     """Score PRED (a condtrack .csv or .h5) against the ground truth GT with the TAP-Vid metrics.
 
     \b
@@ -80,7 +84,9 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
     --plot FILE.png draws the coverage at every level against the level (a
     calibrated covariance follows the diagonal) and the histogram of the
     Mahalanobis distances of the errors against the calibrated (Rayleigh) law.
-    A point's query frame is the file's query (HDF5) or its first row (CSV). GT CSV rows that are
+    A point's query frame is the file's query (HDF5) or its first row (CSV);
+    --queries FILE (the `track -p` file) gives a CSV's points their query frames and
+    positions, so it scores as the HDF5 of the same run. GT CSV rows that are
     absent are not scored. OA, AJ and jaccard_x are n/a (null) when the GT has
     no occluded scored frame: there is then no visibility to judge; a metric of
     GT-visible scored frames (delta_avg, covP, ...) is n/a when there is none. Points are
@@ -89,7 +95,7 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
     as not visible and not within any threshold. Each point's query must lie
     within 1 px of the GT on its query frame where the GT has it visible, else
     PRED is refused (tracked from other queries, e.g. detected without -p); a
-    CSV, which holds no queries, passes where any row of the point lies within
+    CSV without --queries passes where any row of the point lies within
     1 px of its GT (its first row is frame 0 after the backward pass, not the
     query, and is scored from there: the HDF5 output scores from the query).
     """
@@ -100,7 +106,7 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
     truth = _GT_READERS[gt_format](gt)
     refuse_overwriting_inputs({"--plot": plot_path}, {"of GT": _frame_folder(Path(gt).parent, truth.gt_xy.shape[1])})
     tracks, _ = read_tracks(pred)
-    result, data = score_tracks(tracks, truth, query_mode, from_csv=track_format(pred) == "csv")
+    result, data = score_tracks(tracks, truth, query_mode, from_csv=track_format(pred) == "csv", queries=queries_path)
     if plot_path is not None:
         from condtrack_cli.evaluate.plot import write_plot
 

@@ -20,7 +20,8 @@ truth has the point visible there. Points detected on frame 0 (no ``-p``) are
 numbered 0.., and their ids coincide with the truth's by chance only. A CSV holds
 no queries: a two-way run's first row is the backward pass's frame 0, not the
 query, so a CSV point whose first row is off also passes when another of its rows
-(the query row among them) lies within the tolerance of the truth.
+(the query row among them) lies within the tolerance of the truth; ``score_tracks(queries=...)``
+(``eval --queries``) gives a CSV's points their queries instead.
 
 Matching a prediction to the ground truth (``align``) is by ``point_id``:
 predicted points absent from the GT are ignored; GT points absent from the
