@@ -1029,3 +1029,107 @@ def test_bench_seed_spread_runs_each_seed_and_judges_the_checks_on_the_mean(tmp_
     result = subprocess.run([sys.executable, "-m", "condtrack_cli.evaluate.bench", "--seeds", "0", "--work",
                              str(tmp_path / "x")], capture_output=True, text=True)
     assert result.returncode == 2 and "--seeds: expected a positive integer, got 0" in result.stderr
+
+
+#: Metrics computed from positions or covariances, which a CSV rounds (``%.6f``, ``%.6e``): equal to about 1e-7.
+ROUNDED_METRICS = ("median_err", "nees")
+
+
+@pytest.fixture(scope="module")
+def late_queries(tmp_path_factory):
+    """The occlusion sample tracked two-way from queries on frame 5 (its truth there): the queries file, the run's
+    CSV and HDF5 files, and the truth."""
+    import condtrack_cli as ct
+
+    folder, truth = tmp_path_factory.mktemp("late"), SAMPLES / "occlusion" / "tracks.csv"
+    rows = [line.split(",") for line in truth.read_text().splitlines()[1:]]
+    queries = folder / "queries.csv"
+    queries.write_text("point_id,frame,x,y\n" + "".join(f"{p},5,{x},{y}\n" for p, f, x, y, v in rows
+                                                         if f == "5" and v == "1"))
+    tracks = ct.track(str(SAMPLES / "occlusion"), queries=str(queries), method="clf", progress=False)
+    tracks.to_csv(folder / "run.csv")
+    tracks.to_hdf5(folder / "run.h5")
+    return queries, folder / "run.csv", folder / "run.h5", truth
+
+
+def eval_json(*args) -> dict:
+    """``condtrack eval ARGS --json``'s metrics."""
+    result = CliRunner().invoke(eval_command, [*map(str, args), "--json"])
+    assert result.exit_code == 0, result.output
+    return json.loads(result.stdout)
+
+
+def assert_same_scores(scores: dict, expected: dict) -> None:
+    """Equal but for the metrics a CSV's rounding moves (``ROUNDED_METRICS``)."""
+    for key in ROUNDED_METRICS:
+        assert scores.pop(key) == pytest.approx(expected.pop(key), rel=1e-5)
+    assert scores == expected
+
+
+def test_eval_queries_score_a_two_way_csv_as_its_hdf5(late_queries):
+    """A CSV's point queried on frame 5 starts on frame 0 (the backward pass); ``--queries`` scores it from frame 5,
+    as the HDF5 of the same run, where without it the CSV scores from frame 0."""
+    queries, csv_path, h5_path, truth = late_queries
+    hdf5 = eval_json(h5_path, truth)
+    assert eval_json(csv_path, truth)["AJ"] != hdf5["AJ"]
+    assert_same_scores(eval_json(csv_path, truth, "--queries", queries), dict(hdf5))
+    assert_same_scores(eval_json(csv_path, truth, "--queries", queries, "--query-mode", "strided"),
+                       eval_json(h5_path, truth, "--query-mode", "strided"))
+    assert eval_json(h5_path, truth, "--queries", queries) == hdf5
+
+
+def test_eval_queries_refuses_an_hdf5_whose_stored_queries_disagree(late_queries, tmp_path):
+    from test_cli import run_cli
+
+    queries, _, h5_path, truth = late_queries
+    lines = queries.read_text().splitlines()
+    point, frame, x, y = lines[2].split(",")
+    for name, row in (("moved", f"{point},{frame},{float(x) + 1e-4},{y}"), ("late", f"{point},6,{x},{y}")):
+        other = tmp_path / f"{name}.csv"
+        other.write_text("\n".join([*lines[:2], row, *lines[3:]]) + "\n")
+        result = run_cli("eval", str(h5_path), str(truth), "--queries", str(other))
+        assert result.returncode == 1 and result.stdout == ""
+        assert result.stderr.startswith(f"Error: {other}: point_id {point}: the query, frame ") and \
+            "disagrees with the tracks' own, frame 5" in result.stderr and result.stderr.count("\n") == 1
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".h5"])
+def test_eval_queries_refuses_a_point_missing_from_either_side(late_queries, tmp_path, suffix):
+    queries, csv_path, h5_path, truth = late_queries
+    pred = csv_path if suffix == ".csv" else h5_path
+    header, first, *rest = queries.read_text().splitlines()
+    fewer, more = tmp_path / "fewer.csv", tmp_path / "more.csv"
+    fewer.write_text("\n".join([header, *rest]) + "\n")
+    more.write_text("\n".join([header, first, *rest, "999,5,10,10"]) + "\n")
+    for path, message in ((fewer, f"point_id {first.split(',')[0]} is in the tracks but not in the queries file"),
+                          (more, "point_id 999 is in the queries file but not in the tracks")):
+        result = CliRunner().invoke(eval_command, [str(pred), str(truth), "--queries", str(path)])
+        assert result.exit_code == 1 and str(result.exception) == f"{path}: {message}"
+
+
+def test_score_tracks_takes_the_queries_file(late_queries):
+    """The Python function under ``eval``: ``queries=`` as ``--queries``."""
+    from condtrack_cli.evaluate.score import score_tracks
+    from condtrack_cli.io.read import read_tracks
+
+    queries, csv_path, h5_path, truth_path = late_queries
+    truth = load_gt_csv(truth_path)
+    hdf5, data = score_tracks(read_tracks(h5_path)[0], truth)
+    scores, csv_data = score_tracks(read_tracks(csv_path)[0], truth, from_csv=True, queries=queries)
+    assert_same_scores(scores, hdf5)
+    np.testing.assert_array_equal(csv_data.query_frame, data.query_frame)
+    assert set(data.query_frame) == {5}
+
+
+def test_eval_queries_are_checked_against_the_track_file_s_frames(late_queries, tmp_path):
+    """The queries file is read as ``track -p`` reads it, against the track file's frames (its frame size unknown to
+    a CSV: a position need only be finite)."""
+    queries, csv_path, _, truth = late_queries
+    header, first, *rest = queries.read_text().splitlines()
+    point, _, x, y = first.split(",")
+    for name, row, message in (("past", f"{point},30,{x},{y}", "row 2: frame 30 is outside the sequence (0..29)"),
+                               ("nan", f"{point},5,nan,{y}", f"row 2: point (nan, {float(y):g}) is not finite")):
+        path = tmp_path / f"{name}.csv"
+        path.write_text("\n".join([header, row, *rest]) + "\n")
+        result = CliRunner().invoke(eval_command, [str(csv_path), str(truth), "--queries", str(path)])
+        assert result.exit_code == 1 and str(result.exception) == f"{path}: {message}"
