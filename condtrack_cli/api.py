@@ -23,9 +23,9 @@ from typing import Any, Callable, Mapping
 import numpy as np
 
 from condtrack_cli import MAX_SEED, pipeline, registry, types
-from condtrack_cli.config import Config, load_config, stored_config, yaml_scalar
+from condtrack_cli.config import Config, load_config, not_in_csv, stored_config, yaml_scalar
 from condtrack_cli.detect.trackability import POLICIES, query_scores, screen_queries, trackability_settings
-from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain, python_value
+from condtrack_cli.errors import CondtrackError, InvalidArgument, InvalidArgumentType, plain, python_value, warn
 from condtrack_cli.io import read as io_read
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.interface import OutputSettings
@@ -144,6 +144,8 @@ class Tracks:
         if track_format(path, "output") != expected:
             raise CondtrackError(f"{path}: a {expected} file needs a {'.csv' if expected == 'csv' else '.h5 or .hdf5'} name")
         settings = self.config.output if self.config is not None else OutputSettings()
+        for name in sorted({key.split("/")[0] for key in self.result.extras} if expected == "csv" else ()):
+            warn(not_in_csv(name))
         write_tracks(self.result, path, self.info, self.attributes, settings)
 
 

@@ -343,7 +343,7 @@ def stored_config(path: str | Path, meta: Mapping[str, Any]) -> Config | None:
 
 def load_config(
     path: str | os.PathLike | Mapping[str, Any] | None = None, overrides: list[str] = (), method: str | None = None,
-    options: Mapping[str, str] | None = None,
+    options: Mapping[str, str] | None = None, csv_output: bool = False,
 ) -> Config:
     """The validated config: defaults, then the file (or a nested mapping), then ``--set`` overrides, then the
     overrides of ``options``, then ``-m``.
@@ -351,7 +351,8 @@ def load_config(
     ``options``: overrides that options or arguments make, by the option's name
     (``{"--max-std": "output.max_std=3.0"}``). An override that the chosen method
     does not read (a filter section it does not use, ``output.max_std`` without
-    a covariance) gets a warning naming the ``--set`` or the option.
+    a covariance) gets a warning naming the ``--set`` or the option. ``csv_output``: the run writes CSV, which holds
+    none of the datasets ``output.store_<name>`` switches on (warned here, once for a whole batch).
     """
     if path is not None and not isinstance(path, (str, os.PathLike, Mapping)):
         raise CondtrackError(f"config: expected a YAML path or a nested mapping, got {type(path).__name__}")
@@ -374,22 +375,30 @@ def load_config(
         reason = _unused_because(config, key_path)
         if reason:
             warn(f"{name} has no effect: {reason}")
-    for message in _unwritten_extras(config):
+    for message in _unwritten_extras(config, csv_output):
         warn(message)
     return config
 
 
-def _unwritten_extras(config: Config) -> list[str]:
+def _unwritten_extras(config: Config, csv_output: bool) -> list[str]:
     """A warning for each ``output.store_<name>`` switched on (by any source) whose dataset ``config``'s method does not
-    write (its settings' ``extras``): ``store_particles`` under ``clf``, ``store_segmentation`` under ``cnlf``."""
+    write (its settings' ``extras``): ``store_particles`` under ``clf``, ``store_segmentation`` under ``cnlf``; then
+    (``csv_output``) one for each it writes, which a CSV has no room for."""
     method = config.method
+    switched_on = [name for name in ("particles", "segmentation") if getattr(config.output, f"store_{name}")]
+    written = [name for name in switched_on if name in registry.get("filter", method).settings.extras]
     messages = []
-    for name in ("particles", "segmentation"):
-        if getattr(config.output, f"store_{name}") and name not in registry.get("filter", method).settings.extras:
+    for name in switched_on:
+        if name not in written:
             writers = [other for other in valid_methods() if name in registry.get("filter", other).settings.extras]
             messages.append(f"output.store_{name} has no effect: method '{method}' writes no {name} "
                             f"(-m {' or -m '.join(writers)} would)")
-    return messages
+    return messages + [not_in_csv(name) for name in written if csv_output]
+
+
+def not_in_csv(name: str) -> str:
+    """The warning for the optional dataset ``name`` (``output.store_<name>``) of a run that writes a CSV."""
+    return f"output.store_{name} has no effect: a CSV holds no {name} (write an .h5 file for them)"
 
 
 def _warn_overridden(sets: list[tuple[str, tuple[list[str], Any]]],

@@ -354,6 +354,18 @@ def test_a_stored_dataset_the_run_cannot_write_is_warned(tmp_path):
     assert effects("auto", "auto.h5") == []
 
 
+def test_a_stored_dataset_into_csv_is_warned_once_on_stdout_and_in_a_batch(tmp_path):
+    """CSV on stdout wrote no particles without a word, and a --format csv batch repeated the warning for each input
+    (the same for all: the config's); now each run says it once, as it reads the config."""
+    particles = ["--set", "output.store_particles=true", "-m", "cnlf"]
+    warning = "warning: output.store_particles has no effect: a CSV holds no particles (write an .h5 file for them)"
+    batch = [str(SAMPLE), str(SAMPLES / "ring"), "--format", "csv", "--out-dir", str(tmp_path / "out"), "-j", "2"]
+    for args in ([str(SAMPLE)], batch):
+        result = run_cli("track", *args, *particles, "--set", "detect.max_points=4")
+        assert result.returncode == 0, result.stderr
+        assert [line for line in result.stderr.splitlines() if "has no effect" in line] == [warning]
+
+
 def test_messages_show_values_plainly_and_name_an_input_once(tmp_path):
     """Issue 28.20: no ``np.str_('abc')`` in a message, and a quiet batch does not print "Error: empty: empty: ..."."""
     tracks = tmp_path / "t.csv"

@@ -16,6 +16,7 @@ from condtrack_cli.cli.options import (FiniteFloatRange, checked, overlay_option
 from condtrack_cli.config import Config, config_keys, load_config
 from condtrack_cli.errors import CondtrackError, read_error, warn
 from condtrack_cli.io.atomic import refuse_overwriting_inputs
+from condtrack_cli.io.formats import is_hdf5
 from condtrack_cli.progress import Progress, show_warnings
 from condtrack_cli.threads import requested_threads, threads_per_job, use_threads
 
@@ -99,7 +100,8 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         ("--smooth", "filter.smooth=true", smooth), ("--untrackable", f"detect.untrackable={untrackable}", untrackable),
         ("--max-std", f"output.max_std={max_std!r}", max_std is not None),
         ("--forward-only", "output.backward=false", forward_only)) if given}
-    config: Config = load_config(config_path, list(overrides), method, options)
+    csv_output = batch_format == "csv" if in_batch else output_path is None or not is_hdf5(output_path)
+    config: Config = load_config(config_path, list(overrides), method, options, csv_output)
     if not in_batch:
         threads, warning = threads_per_job(requested_threads(threads), 1)
         if warning:

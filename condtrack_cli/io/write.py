@@ -22,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from condtrack_cli import COORDINATES, SCHEMA_VERSION, __version__
-from condtrack_cli.errors import CondtrackError, counted, warn, write_error
+from condtrack_cli.errors import CondtrackError, counted, write_error
 from condtrack_cli.io.atomic import atomic_path
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.interface import OutputSettings
@@ -53,10 +53,8 @@ def csv_text(tracks: Tracks) -> str:
 
 
 def write_csv(tracks: Tracks, path: Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
-    """Write the long CSV; the optional datasets that ``output.store_<name>`` switched on are warned of, not written
-    (a CSV has no room for them)."""
-    for name in sorted({key.split("/")[0] for key in tracks.extras}):
-        warn(f"output.store_{name} has no effect: a CSV holds no {name} (write an .h5 file for them)")
+    """Write the long CSV; the optional datasets of ``tracks.extras`` are not written (a CSV has no room for them:
+    ``condtrack track`` warns as it reads the config, ``Tracks.to_csv`` as it writes)."""
     path.write_bytes(csv_text(tracks).encode("ascii"))
 
 
