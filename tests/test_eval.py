@@ -1094,17 +1094,32 @@ def test_eval_queries_refuses_an_hdf5_whose_stored_queries_disagree(late_queries
 
 
 @pytest.mark.parametrize("suffix", [".csv", ".h5"])
-def test_eval_queries_refuses_a_point_missing_from_either_side(late_queries, tmp_path, suffix):
+def test_eval_queries_refuses_a_tracked_point_missing_from_the_file(late_queries, tmp_path, suffix):
     queries, csv_path, h5_path, truth = late_queries
     pred = csv_path if suffix == ".csv" else h5_path
     header, first, *rest = queries.read_text().splitlines()
-    fewer, more = tmp_path / "fewer.csv", tmp_path / "more.csv"
+    fewer = tmp_path / "fewer.csv"
     fewer.write_text("\n".join([header, *rest]) + "\n")
-    more.write_text("\n".join([header, first, *rest, "999,5,10,10"]) + "\n")
-    for path, message in ((fewer, f"point_id {first.split(',')[0]} is in the tracks but not in the queries file"),
-                          (more, "point_id 999 is in the queries file but not in the tracks")):
-        result = CliRunner().invoke(eval_command, [str(pred), str(truth), "--queries", str(path)])
-        assert result.exit_code == 1 and str(result.exception) == f"{path}: {message}"
+    result = CliRunner().invoke(eval_command, [str(pred), str(truth), "--queries", str(fewer)])
+    assert result.exit_code == 1 and str(result.exception) == (
+        f"{fewer}: point_id {first.split(',')[0]} is in the tracks but not in the queries file")
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".h5"])
+def test_eval_queries_takes_the_p_file_of_a_run_that_dropped_untrackable_points(late_queries, tmp_path, suffix):
+    """`track --untrackable drop` tracks only some of the -p file's points; eval --queries refused that very file
+    ("point_id 999 is in the queries file but not in the tracks"). Its untracked points are ignored now."""
+    import condtrack_cli as ct
+
+    queries, _, _, truth = late_queries
+    more = tmp_path / "more.csv"
+    more.write_text(queries.read_text() + "999,5,5,5\n")  # a flat corner: untrackable
+    with pytest.warns(ct.CondtrackWarning, match="untrackable"):
+        tracks = ct.track(str(SAMPLES / "occlusion"), queries=str(more), method="clf", untrackable="drop")
+    assert 999 not in tracks.queries.point_id
+    pred = tmp_path / f"run{suffix}"
+    (tracks.to_csv if suffix == ".csv" else tracks.to_hdf5)(pred)
+    assert eval_json(pred, truth, "--queries", more) == eval_json(pred, truth, "--queries", queries)
 
 
 def test_score_tracks_takes_the_queries_file(late_queries):

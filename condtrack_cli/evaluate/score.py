@@ -41,15 +41,15 @@ def with_queries(tracks: Tracks, path: str | Path, *, stored: bool) -> Tracks:
     """``tracks`` with each point's query frame and position from the queries CSV ``path``, matched by point_id.
 
     ``stored``: the tracks hold their own queries (HDF5), which must agree with the file's (same frame, position
-    within ``QUERY_AGREEMENT_PX``). CondtrackError naming ``path`` and the first point_id in the tracks but not in
-    the file, in the file but not in the tracks, or (``stored``) whose queries disagree.
+    within ``QUERY_AGREEMENT_PX``). A point of the file absent from the tracks is ignored (``track --untrackable
+    drop`` tracks only some of its points). CondtrackError naming ``path`` and the first point_id in the tracks but
+    not in the file, or (``stored``) whose queries disagree.
     """
     given = read_queries(path, SequenceInfo(str(path), 0, 0, tracks.xy.shape[1], 0.0))  # the tracks' frames
     ids = np.asarray(tracks.queries.point_id, np.int64)
-    for absent, where in ((np.setdiff1d(ids, given.point_id), "in the tracks but not in the queries file"),
-                          (np.setdiff1d(given.point_id, ids), "in the queries file but not in the tracks")):
-        if len(absent):
-            raise CondtrackError(f"{path}: point_id {absent[0]} is {where}")
+    absent = np.setdiff1d(ids, given.point_id)
+    if len(absent):
+        raise CondtrackError(f"{path}: point_id {absent[0]} is in the tracks but not in the queries file")
     index = np.searchsorted(given.point_id, ids)
     frame, xy = given.frame[index], given.xy[index]
     if stored:
