@@ -135,17 +135,21 @@ class StageSpec:
 #: The method of a stage that returns another stage (measure/interface.py: ``resized``), guarded as well.
 _STAGE_RETURNING = ("resized",)
 _END = object()
+_MISSING = object()
 
 
 class PluginStage:
-    """A plugin's stage object, each of its methods called through :meth:`StageSpec.call` (iterating it too): what
-    they raise names the stage. Every other attribute is the stage's own (``hasattr`` answers as for the stage)."""
+    """A plugin's stage object, each of its attributes read (a property may raise) and its methods called through
+    :meth:`StageSpec.call` (iterating it too): what they raise names the stage. ``hasattr`` answers as for the
+    stage."""
 
     def __init__(self, stage, spec: StageSpec):
         self._stage, self._spec = stage, spec
 
     def __getattr__(self, attribute: str):
-        found = getattr(self._stage, attribute)
+        found = self._spec.call(getattr, self._stage, attribute, _MISSING)
+        if found is _MISSING:
+            raise AttributeError(f"{type(self._stage).__name__!r} object has no attribute {attribute!r}")
         if not callable(found):
             return found
         if attribute in _STAGE_RETURNING:

@@ -374,6 +374,34 @@ def test_a_plugin_stage_raising_is_a_condtrack_error_chained_to_its_exception(ki
         registry._STAGES[kind].pop("raising", None)
 
 
+def test_a_plugin_stage_s_property_raising_is_a_condtrack_error():
+    """A frame source whose ``info`` is a property (the input opened lazily) raising ended `condtrack track` in a
+    traceback: only the stage's methods were called through StageSpec.call. Reading an attribute is too now, and
+    ``hasattr`` still answers False for one the stage lacks."""
+    from condtrack_cli.frames.readers import FrameSettings, open_frames
+
+    class Lazy:
+        def __init__(self, path):
+            self.source = open_frames(FrameSettings(), path)
+
+        @property
+        def info(self):
+            raising()
+
+        def __iter__(self):
+            return iter(self.source)
+
+    registry.register("frames", "lazy", RaisingSettings)(lambda settings, path: Lazy(path))
+    try:
+        assert not hasattr(registry.get("frames", "lazy").build(RaisingSettings(), str(SAMPLE)), "read")
+        with pytest.raises(ct.CondtrackError, match=r"^frames stage 'lazy' \(plugin [\w.]*test_plugins\) raised "
+                                                    r"RuntimeError: out of cheese$") as raised:
+            ct.track(str(SAMPLE), queries=SAMPLE / "queries.csv", config={"frames": {"name": "lazy"}}, method="clf")
+        assert isinstance(raised.value.__cause__, RuntimeError)
+    finally:
+        registry._STAGES["frames"].pop("lazy", None)
+
+
 def test_only_a_plugin_stage_is_wrapped_a_built_in_bug_keeps_its_exception(monkeypatch):
     """The same failing measurement: from a plugin, a CondtrackError; in the built-in SSD stage, the RuntimeError
     itself and its traceback (a bug report)."""
