@@ -10,7 +10,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from condtrack_cli.filters.reference import ReferenceMatcher
+from condtrack_cli.filters.reference import GatedMeasurement, ReferenceMatcher
 from condtrack_cli.filters.settings import MeasuredFilterSettings
 from condtrack_cli.measure.response import SSDSettings
 from condtrack_cli.measure.ssd import SSDMeasure
@@ -109,3 +109,40 @@ def test_a_warp_beyond_the_wide_patch_is_not_applied():
         reference.deform(np.arange(1), side * np.eye(2)[None])
         chosen = reference._references(np.arange(1), frame1, xy)
         assert np.array_equal(chosen, reference.templates[:1]) == (side == 0.3)
+
+
+def _first_patch_matches(warp_reference: bool, lost: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the drift check finds each point's first patch on the zoomed frame 1 around estimates 0.4 px off the
+    truth, whether it was found there, and the truth; the reference told of the zoom, and (``lost``) of a frame on
+    which no point was found."""
+    frame0, frame1, xy, truth = _zoomed_frames()
+    n = len(xy)
+    settings = MeasuredFilterSettings(warp_reference=warp_reference, lk_fallback=False)
+    reference = ReferenceMatcher(SSDMeasure(SSDSettings()), settings, n, 9.21)
+    index = np.arange(n)
+    reference.start(index, frame0, xy)
+    reference.deform(index, np.repeat(ZOOM * np.eye(2)[None], n, 0))
+    if lost:
+        unfound = GatedMeasurement(z=np.full((n, 2), np.nan), R=np.full((n, 2, 2), np.inf),
+                                   R_used=np.full((n, 2, 2), np.inf), valid=np.zeros(n, bool),
+                                   residual=np.full(n, np.nan), shown=np.zeros(n, bool), shift=np.zeros((n, 2)),
+                                   jump=np.zeros((n, 2)))
+        reference.refresh(index, frame0, xy, frame1, truth, np.zeros(n, bool), unfound)
+    at, found = reference._anchored(index, frame1, truth + [0.25, -0.3])
+    return at, found, truth
+
+
+def test_the_drift_check_matches_the_first_patch_warped_while_the_point_has_been_found():
+    # Measured: median error 0.04 px warped, 0.19 px as taken; every point found either way (at 0.6 px off the
+    # truth 0.12 px warped: the warp is used only where it fits the frame at the estimate clearly better).
+    at, found, truth = _first_patch_matches(True, lost=False)
+    plain_at, plain_found, _ = _first_patch_matches(False, lost=False)
+    assert found.sum() >= 10 and plain_found.sum() >= 10
+    both = found & plain_found
+    warped_error = np.linalg.norm(at - truth, axis=1)[both]
+    plain_error = np.linalg.norm(plain_at - truth, axis=1)[both]
+    assert np.median(warped_error) < 0.5 * np.median(plain_error)
+    # a point not found since its query is matched with its first patch as taken: J ran through frames it missed
+    lost_at, lost_found, _ = _first_patch_matches(True, lost=True)
+    np.testing.assert_array_equal(lost_at, plain_at)
+    np.testing.assert_array_equal(lost_found, plain_found)

@@ -49,10 +49,14 @@ warped patch is the wide patch's clamped border), and it fits the frame at the
 prediction clearly better than the patch as taken (below half its cost,
 ``WARP_BETTER``): the point's own evidence. With any better fit instead the faces'
 dudek_01 fell from 0.841 to 0.818, below LK, and the camel from 0.256 to 0.242
-(mean of seeds 0-4; docs/departures.md). And the first
-patch (``anchors``) is never warped: J since the query runs through occlusions and
-long non-rigid spells (warping it too lost 0.21 <delta_avg on dudek_03 and 0.04 on
-the camel).
+(mean of seeds 0-4; docs/departures.md). The first patch (``anchors``) is warped
+the same way, by J since the query, for the drift check's match (``_anchored``) alone,
+and only while the point has been found on every frame since its query
+(``anchor_held``): after a loss J has run through an occlusion or a spell the point
+did not follow, and nothing ties it to the point (warping the first patch wherever it
+is matched, the re-acquisition's search after a loss too, lost 0.21 <delta_avg on
+dudek_03 and 0.04 on the camel; docs/departures.md, "The first patch warped for the
+drift check").
 """
 
 from __future__ import annotations
@@ -222,6 +226,10 @@ class ReferenceMatcher:
         self.anchor_wide = np.zeros_like(self.wide)
         #: (P, 2, 2) J: the local field's linear maps accumulated since each reference was taken (``warp_reference``)
         self.warp = np.repeat(np.eye(2)[None], n_points, axis=0)
+        #: (P, 2, 2) the same maps accumulated since each point's query, and (P,) whether the point has been found on
+        #: every frame since: where the drift check's first patch is matched warped (``_anchored``)
+        self.anchor_warp = np.repeat(np.eye(2)[None], n_points, axis=0)
+        self.anchor_held = np.ones(n_points, bool)
         #: (P,) least per-axis variance of the offset of each point's reference re-taken on the last step (px^2):
         #: r^2 / 4, the per-axis variance of an offset spread evenly over the disk of radius r, with r = ``drift_check``
         #: where the first patch was not found within ``drift_check`` px of the estimate and r = the distance from the
@@ -258,6 +266,8 @@ class ReferenceMatcher:
         self._take(index, self.measure.templates(frame.gray, xy), self._wide_patches(frame, xy))
         self.anchors[index] = self.templates[index]
         self.anchor_wide[index] = self.wide[index]
+        self.anchor_warp[index] = np.eye(2)
+        self.anchor_held[index] = True
         if self.drift_anchors is not self.anchors:
             self.drift_anchors[index] = self.anchor_measure.templates(frame.gray, xy)
         self.usual[index] = np.nan
@@ -285,9 +295,10 @@ class ReferenceMatcher:
 
     def deform(self, index: np.ndarray, linear: np.ndarray) -> None:
         """With ``warp_reference``: the neighbourhoods of points ``index`` were moved this step by local affine maps
-        with (n, 2, 2) linear parts ``linear`` (A_k of eq. 1); J <- A_k J."""
+        with (n, 2, 2) linear parts ``linear`` (A_k of eq. 1); J <- A_k J, and the first patch's J likewise."""
         if self.settings.warp_reference:
             self.warp[index] = np.einsum("nij,njk->nik", linear, self.warp[index])
+            self.anchor_warp[index] = np.einsum("nij,njk->nik", linear, self.anchor_warp[index])
 
     def _references(self, index: np.ndarray, frame: Frame, predicted: np.ndarray) -> np.ndarray:
         """(n, t, t) the patches points ``index`` are matched with: their reference, or with ``warp_reference`` the
@@ -297,8 +308,16 @@ class ReferenceMatcher:
         plain = self.templates[index]
         if not self.settings.warp_reference:
             return plain
-        t, side = plain.shape[1], self.wide.shape[1]
-        inverse = np.linalg.inv(self.warp[index])  # (n, 2, 2): the warped patch's pixel v samples the reference at J^-1 v
+        return self._warped(plain, self.wide[index], self.warp[index], frame, predicted)
+
+    def _warped(self, plain: np.ndarray, wide_patches: np.ndarray, warp: np.ndarray, frame: Frame,
+                predicted: np.ndarray) -> np.ndarray:
+        """(n, t, t) ``plain`` patches, each replaced by its (n, 2t - 1, 2t - 1) ``wide_patches`` sampled at J^-1 v
+        (J the (n, 2, 2) ``warp``) where J moves some pixel by ``WARP_REACH`` px or more, and by no more than the wide
+        patch's margin, and the warped patch fits ``frame``'s patch at (n, 2) ``predicted`` clearly better
+        (``WARP_BETTER``)."""
+        t, side = plain.shape[1], wide_patches.shape[1]
+        inverse = np.linalg.inv(warp)  # (n, 2, 2): the warped patch's pixel v samples the reference at J^-1 v
         reach = (t // 2) * np.abs(inverse - np.eye(2)).sum(axis=2).max(axis=1)  # a corner pixel's largest x or y shift
         room = (side - t) // 2  # a warp that samples beyond the wide patch is not represented: not applied
         moved = np.flatnonzero((reach >= WARP_REACH) & (reach <= room) & np.isfinite(predicted).all(axis=1))
@@ -314,7 +333,7 @@ class ReferenceMatcher:
         cx, cy = (np.minimum(np.floor(source).astype(np.intp), side - 2) for source in (sx, sy))
         fx, fy = sx - cx, sy - cy
         at = (np.arange(moved.size)[:, None, None] * side + cy) * side + cx  # the top-left neighbour, flat index
-        wide = self.wide[index[moved]].reshape(-1)
+        wide = wide_patches[moved].reshape(-1)
         warped = ((wide[at] * (1 - fx) + wide[at + 1] * fx) * (1 - fy)
                   + (wide[at + side] * (1 - fx) + wide[at + side + 1] * fx) * fy).astype(np.float32)
         there = self.measure.templates(frame.gray, predicted[moved])
@@ -616,6 +635,7 @@ class ReferenceMatcher:
             found_vouched = measured.valid & self.vouched[index]
             self.vouched_seen[index[found_vouched]] = x_post[found_vouched]
         retaken = np.zeros(len(index), bool)
+        self.anchor_held[index[~measured.valid]] = False
         self.offset_floor[index] = 0.0
         if not s.reference_update:
             return retaken
@@ -641,11 +661,18 @@ class ReferenceMatcher:
         ``drift_check`` around (n, 2) estimates ``xy`` where it is informative and lies within ``drift_check`` px of
         them, else ``xy`` (Matthews, Ishikawa & Baker 2004, "The template update problem": each re-take at the
         estimate adds its error to every later match; the first patch, where it still fits, holds the re-takes to
-        the point)."""
+        the point). With ``warp_reference`` the first patch is matched warped by J since the query where the point has
+        been found on every frame since (``anchor_held``; module docstring)."""
         reach = self.settings.drift_check
         if reach is None or not len(index):
             return xy, np.zeros(len(index), bool)
-        m = self.anchor_measure.measure(frame.gray, self.drift_anchors[index], xy,
+        anchors = self.drift_anchors[index]
+        held = self.anchor_held[index]
+        if self.settings.warp_reference and self.drift_anchors is self.anchors and held.any():
+            anchors = anchors.copy()  # the first patch warped by J since the query where it held (module docstring)
+            anchors[held] = self._warped(anchors[held], self.anchor_wide[index[held]], self.anchor_warp[index[held]],
+                                         frame, xy[held])
+        m = self.anchor_measure.measure(frame.gray, anchors, xy,
                                         _square_gate(reach, len(index), self.gamma), self.noise_sigma)
         with np.errstate(invalid="ignore"):
             near = m.informative & (np.linalg.norm(m.z - xy, axis=1) <= reach)

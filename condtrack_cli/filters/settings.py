@@ -46,7 +46,9 @@ class MeasuredFilterSettings(InitialStateSettings):
         True,
         description="match the reference patch warped by the local field's deformation since it was taken, where "
                     "that moves some patch pixel by half a pixel or more, within the patch's margin, and fits the "
-                    "frame at the prediction clearly better than the patch as taken (false: as taken, the paper's)",
+                    "frame at the prediction clearly better than the patch as taken; the drift check's first patch "
+                    "likewise, by the deformation since the query, while the point has been found on every frame "
+                    "since (false: as taken, the paper's)",
     )
     update_abruptness: float = Field(
         0.8, gt=0, le=1, description="no refresh when more than this share of the residual appeared since the last frame"
