@@ -47,7 +47,6 @@ from condtrack_cli.filters.gauss2 import symmetrize
 from condtrack_cli.filters.interface import Tracker
 from condtrack_cli.frame_reports import FrameReports, FrameStore, park, temporary_folder
 from condtrack_cli.frames.prefetch import Prefetched
-from condtrack_cli.measure.interface import CheckedMeasurer
 from condtrack_cli.motion.interface import FrameMotion, MotionStages
 from condtrack_cli.queries import detected_queries
 from condtrack_cli.threads import threads_in_use
@@ -58,14 +57,10 @@ MOTION_THREAD = "condtrack-motion-ahead"
 
 
 def build_stage(config: Config, kind: str):
-    """The configured stage of ``kind`` ('motion', 'measure'), built from its settings alone (a plugin's guarded:
-    ``registry.StageSpec.build``)."""
+    """The configured stage of ``kind`` ('motion', 'measure'), built from its settings alone (a plugin's guarded and
+    its measurer's outputs checked: ``registry.StageSpec.build``)."""
     stage = config.stage(kind)
-    spec = registry.get(kind, stage.name)
-    built = spec.build(stage.settings)
-    if kind == "measure" and not spec.builtin:  # a plugin's: its outputs checked
-        return CheckedMeasurer(built, stage.name)
-    return built
+    return registry.get(kind, stage.name).build(stage.settings)
 
 
 def detect_queries(config: Config, first: Frame, info: SequenceInfo) -> Queries:

@@ -105,14 +105,19 @@ class StageSpec:
 
     def build(self, *args, **kwargs):
         """The stage, ``factory(*args, **kwargs)``; a plugin's called through :meth:`call`, and so are the methods of
-        what it builds (:class:`PluginStage`: a frame source, a motion stage's estimators, a measurer, a tracker).
-        A detect or output stage's factory is the stage's whole work: its value is returned as it is."""
+        what it builds (:class:`PluginStage`: a frame source, a motion stage's estimators, a measurer, a tracker),
+        a plugin's measurer's outputs checked as well (``measure.interface.CheckedMeasurer``). A detect or output
+        stage's factory is the stage's whole work: its value is returned as it is."""
         built = self.call(self.factory, *args, **kwargs)
         if self.builtin or self.kind in ("detect", "output"):
             return built
         if self.kind == "motion":  # a MotionStages (motion/interface.py): its state noise is condtrack's StateNoise
             return dataclasses.replace(built, global_motion=PluginStage(built.global_motion, self),
                                        local_motion=PluginStage(built.local_motion, self))
+        if self.kind == "measure":
+            from condtrack_cli.measure.interface import CheckedMeasurer  # numpy: not loaded by ``condtrack --help``
+
+            return CheckedMeasurer(PluginStage(built, self), self.name)
         return PluginStage(built, self)
 
     def call(self, function: Callable, *args, **kwargs):

@@ -669,7 +669,7 @@ class ReferenceMatcher:
         anchors = self.drift_anchors[index]
         held = self.anchor_held[index]
         if self.settings.warp_reference and self.drift_anchors is self.anchors and held.any():
-            anchors = anchors.copy()  # the first patch warped by J since the query where it held (module docstring)
+            # the first patch warped by J since the query where it held (module docstring); anchors is a copy
             anchors[held] = self._warped(anchors[held], self.anchor_wide[index[held]], self.anchor_warp[index[held]],
                                          frame, xy[held])
         m = self.anchor_measure.measure(frame.gray, anchors, xy,
