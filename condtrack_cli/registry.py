@@ -132,9 +132,16 @@ class StageSpec:
             raise
         except Exception as error:
             message = " ".join(str(error).split())  # one line
-            plugin = getattr(self.factory_target, "__module__", None) or "?"  # the module of its factory
-            raise CondtrackError(f"{self.kind} stage '{self.name}' (plugin {plugin}) raised {type(error).__name__}"
-                                 f"{': ' + message if message else ''}") from error
+            raise CondtrackError(f"{self.label} raised {type(error).__name__}{': ' + message if message else ''}") \
+                from error
+
+    @property
+    def label(self) -> str:
+        """How messages name this stage: ``filter stage 'hold' (plugin thirdparty_hold)``, the plugin being the module
+        of its factory (a built-in's: ``filter stage 'clf'``)."""
+        if self.builtin:
+            return f"{self.kind} stage '{self.name}'"
+        return f"{self.kind} stage '{self.name}' (plugin {getattr(self.factory_target, '__module__', None) or '?'})"
 
 
 #: The method of a stage that returns another stage (measure/interface.py: ``resized``), guarded as well.

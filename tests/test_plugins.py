@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import errno
 import functools
 import os
 import subprocess
@@ -419,3 +420,31 @@ def test_only_a_plugin_stage_is_wrapped_a_built_in_bug_keeps_its_exception(monke
     with pytest.raises(RuntimeError, match="out of cheese") as raised:
         track()
     assert not isinstance(raised.value, ct.CondtrackError)
+
+
+@pytest.mark.parametrize("raised, message", [
+    (OSError(errno.ENOSPC, "No space left on device"), "{out}: no space left on device, in {stage}"),
+    (PermissionError(errno.EACCES, "Permission denied"), "{out}: cannot write (Permission denied), in {stage}"),
+    (RuntimeError("out of cheese"), "{out}: not written: {stage} raised RuntimeError: out of cheese"),
+])
+def test_a_plugin_writer_raising_names_the_file_and_the_stage(tmp_path, monkeypatch, capsys, raised, message):
+    """A plugin's output writer raising OSError said neither the file nor the usual write error's words (the stage's
+    message alone); now one `Error:` line names the file as every other write error does, then the stage, exit 1 and
+    no file (nor its temporary) left."""
+    from condtrack_cli.cli import main
+    from condtrack_cli.io.interface import OutputSettings
+
+    def failing_writer(tracks, path, info, meta, settings):
+        path.write_text("point_id,frame\n0,")  # a partial file, then the failure
+        raise raised
+
+    monkeypatch.setitem(registry._STAGES["output"], "csv", registry._STAGES["output"]["csv"])
+    registry.register("output", "csv", OutputSettings)(failing_writer)
+    out = tmp_path / "out.csv"
+    monkeypatch.setattr(sys, "argv", ["condtrack", "track", str(SAMPLE), "-p", str(SAMPLE / "queries.csv"), "-m", "stk",
+                                      "-o", str(out), "-q"])
+    with pytest.raises(SystemExit) as stop:
+        main()
+    stage = f"output stage 'csv' (plugin {__name__})"
+    assert (stop.value.code, capsys.readouterr().err) == (1, f"Error: {message.format(out=out, stage=stage)}\n")
+    assert list(tmp_path.iterdir()) == []

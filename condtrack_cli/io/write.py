@@ -125,15 +125,19 @@ EXTRA_ATTRIBUTES = {
     "segmentation": {"meaning": "255 x robust weight of the global fit from frame k to k+1, on frame k's grid"},
 }
 
-def write_tracks(tracks: Tracks, path: str | Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings) -> None:
+def write_tracks(tracks: Tracks, path: str | Path, info: SequenceInfo, meta: dict[str, Any], settings: OutputSettings,
+                 *, named: str | Path | None = None) -> None:
     """Write ``tracks`` to ``path`` (.csv, .h5 or .hdf5), atomically: the file is whole or absent (a full disk included).
 
     CondtrackError, nothing written, when the F frames of ``tracks`` are not the ``info.n_frames`` of the input: the
     HDF5 file's ``n_frames`` would disagree with its /tracks/xy, which the readers refuse; and when a value is one the
-    readers refuse (``read.check_values``: a negative variance, a position partly NaN, a dof not above 2)."""
+    readers refuse (``read.check_values``: a negative variance, a position partly NaN, a dof not above 2). Errors name
+    ``named``, the output the user gave, when ``path`` is a staged copy of it (default: ``path``); a plugin writer's
+    exception is one of them, naming its stage."""
     path = Path(path)
+    named = path if named is None else named
     if tracks.xy.shape[1] != info.n_frames:
-        raise CondtrackError(f"{path}: not written: the tracks have {counted(tracks.xy.shape[1], 'frame')}, but "
+        raise CondtrackError(f"{named}: not written: the tracks have {counted(tracks.xy.shape[1], 'frame')}, but "
                              f"{info.input or 'their input'} has {counted(info.n_frames, 'frame')}")
     from condtrack_cli.io.read import check_values  # read imports this module
 
@@ -141,10 +145,20 @@ def write_tracks(tracks: Tracks, path: str | Path, info: SequenceInfo, meta: dic
         check_values(tracks)
     except ValueError as error:
         method = f" (filter '{meta['method']}')" if meta.get("method") else ""
-        raise CondtrackError(f"{path}: not written: {error}{method}") from None
+        raise CondtrackError(f"{named}: not written: {error}{method}") from None
     writer = get("output", track_format(path, "output"))
     with atomic_path(path) as temporary:
         try:
             writer.build(tracks, temporary, info, meta, settings)
         except OSError as error:  # h5py reports a full disk as OSError with errno ENOSPC, as Python does
-            raise write_error(path, error) from None
+            raise write_error(named, error) from None
+        except CondtrackError as error:  # a plugin writer's exception (StageSpec.call's, naming the stage)
+            raise _plugin_write_error(named, error, writer.label) from error.__cause__
+
+
+def _plugin_write_error(path: str | Path, error: CondtrackError, stage: str) -> CondtrackError:
+    """What a plugin writer ``stage`` raised, as a message naming the file ``path`` as well: an OSError of its own
+    (``error.__cause__``) in the words of every other write error (``write_error``), the stage after them."""
+    if isinstance(error.__cause__, OSError):
+        return CondtrackError(f"{write_error(path, error.__cause__)}, in {stage}")
+    return CondtrackError(f"{path}: not written: {error}")
