@@ -6,6 +6,7 @@ is ``condtrack_cli.batch``.
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
 import time
@@ -15,7 +16,7 @@ from pathlib import Path
 from condtrack_cli.api import track_sequence
 from condtrack_cli.config import Config
 from condtrack_cli.errors import CondtrackError, write_error
-from condtrack_cli.io.atomic import output_file
+from condtrack_cli.io.atomic import output_file, publish, staging_folder, through_links
 from condtrack_cli.io.formats import track_format
 from condtrack_cli.io.write import csv_text, write_tracks
 from condtrack_cli.streams import drop
@@ -66,20 +67,39 @@ def track_input(
     result, source = track_sequence(input_path, config, queries_path, seed, progress)
     seconds = time.perf_counter() - started
     tracks, info = result.result, result.info
-    if output_path is None:
-        write_stdout(csv_text(tracks))
-    else:
-        write_tracks(tracks, output_path, info, result.attributes, config.output)
-    if overlay_path is not None:
-        from condtrack_cli.render import OverlayStyle, render_overlay
-
-        render_overlay(tracks, source, overlay_path, info.fps, style=overlay_style or OverlayStyle())
+    _write_outputs(result, source, config, output_path, overlay_path, overlay_style)
     rows = tracks.has_state
     return RunSummary(
         input=input_path, output=output_path, n_points=len(tracks.queries), n_frames=info.n_frames,
         visible_share=float(tracks.visible[rows].mean()) if rows.any() else 0.0,
         seconds_per_frame=seconds / max(info.n_frames, 1),
     )
+
+
+def _write_outputs(result, source, config: Config, output_path: str | None, overlay_path: str | None,
+                   overlay_style) -> None:
+    """The track file (the CSV on stdout when ``output_path`` is None) and the overlay video, published together:
+    when the overlay fails (a frame its second pass cannot read, a full disk) or is interrupted, the track file is
+    not published either (a file already at ``output_path`` stays as it was) and stdout gets nothing."""
+    tracks, info = result.result, result.info
+    if overlay_path is None:
+        if output_path is None:
+            write_stdout(csv_text(tracks))
+        else:
+            write_tracks(tracks, output_path, info, result.attributes, config.output)
+        return
+    from condtrack_cli.render import OverlayStyle, render_overlay
+
+    draw = functools.partial(render_overlay, tracks, source, overlay_path, info.fps, style=overlay_style or OverlayStyle())
+    if output_path is None:
+        draw()
+        write_stdout(csv_text(tracks))
+        return
+    with staging_folder(output_path) as staging:
+        staged = staging / through_links(output_path).name
+        write_tracks(tracks, staged, info, result.attributes, config.output, named=output_path)
+        draw()
+        publish(staged, output_path)
 
 
 def write_stdout(text: str) -> None:

@@ -16,6 +16,7 @@ import pytest
 from click.testing import CliRunner
 
 from condtrack_cli.cli import cli
+from condtrack_cli.errors import CondtrackError
 from conftest import FORCED_TERMINAL, SAMPLES, default_sigint
 from test_cli import run_cli
 
@@ -509,3 +510,54 @@ def test_a_reader_closing_the_pipe_early_is_not_an_error(tmp_path):
     assert (tmp_path / "o.mp4").stat().st_size > 0 and not list(tmp_path.glob("*.part"))
     result = _with_a_closed_pipe("stderr", "track", str(tmp_path / "nowhere"))
     assert (result.returncode, result.stdout) == (2, "")
+
+
+def _main(args: list[str], monkeypatch, capsys) -> tuple[int, str, str]:
+    """``condtrack ARGS`` in this process (its monkeypatches apply): exit code, stdout, stderr."""
+    from condtrack_cli.cli import main
+
+    monkeypatch.setattr(sys, "argv", ["condtrack", *args])
+    with pytest.raises(SystemExit) as stop:
+        main()
+    captured = capsys.readouterr()
+    return stop.value.code, captured.out, captured.err
+
+
+@pytest.mark.parametrize("output", ["out.h5", "out.csv", None])
+@pytest.mark.parametrize("failure", ["frame gone", "frames dropped"])
+def test_an_overlay_failing_in_its_second_pass_leaves_no_track_file(tmp_path, monkeypatch, capsys, output, failure):
+    """The track file was published before the overlay's second pass over the frames, so a failure there (a frame
+    removed since the first pass, a video writer that dropped frames) exited 1 with the -o file written (and the CSV
+    already on stdout). Now both are published once the overlay is: nothing is left, an earlier file at the -o path
+    stays as it was, stdout gets nothing."""
+    import condtrack_cli.render
+    import condtrack_cli.run
+
+    (tmp_path / "in").mkdir()
+    folder = _frames_folder(tmp_path / "in")
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    earlier = out_dir / "out.h5"
+    earlier.write_bytes(b"an earlier run's file")
+    if failure == "frame gone":
+        tracked = condtrack_cli.run.track_sequence
+
+        def track_then_lose_a_frame(*args, **kwargs):
+            done = tracked(*args, **kwargs)
+            (folder / "003.png").unlink()
+            return done
+
+        monkeypatch.setattr(condtrack_cli.run, "track_sequence", track_then_lose_a_frame)
+        message = f"Error: frame 3 ({folder / '003.png'}): not a readable image\n"
+    else:
+        def dropped(video, count, named):
+            raise CondtrackError(f"{named}: the video writer stored 2 of {count} frames (is the disk full?)")
+
+        monkeypatch.setattr(condtrack_cli.render, "_check_video", dropped)
+        message = f"Error: {out_dir / 'overlay.mp4'}: the video writer stored 2 of 4 frames (is the disk full?)\n"
+    overlay = out_dir / "overlay.mp4"
+    args = ["track", str(folder), "-m", "stk", "-q", "--overlay", str(overlay)]
+    code, stdout, stderr = _main(args + (["-o", str(out_dir / output)] if output else []), monkeypatch, capsys)
+    assert (code, stdout, stderr) == (1, "", message)
+    assert sorted(p.name for p in out_dir.iterdir()) == ["out.h5"]
+    assert earlier.read_bytes() == b"an earlier run's file"
