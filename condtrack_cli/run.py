@@ -52,22 +52,24 @@ def check_output_path(path: Path) -> None:
 
 def track_input(
     input_path: str, config: Config, queries_path: str | None, output_path: str | None, seed: int,
-    progress=None, overlay_path: str | None = None, overlay_style=None,
+    progress=None, overlay_path: str | None = None, overlay_style=None, staged_path: str | None = None,
 ) -> RunSummary:
     """Track one input and write its output (CSV on stdout when ``output_path`` is None).
 
     ``progress(done, total)`` is called after each frame (``api.track_sequence``); None tracks silently.
     ``overlay_style``: what the overlay draws (``render.OverlayStyle``; None: everything).
+    ``staged_path``: where the output file is written instead, for the caller to move to ``output_path`` (a batch's
+    staging folder, gone when the batch ends); messages name ``output_path``.
     """
     if output_path is not None:
-        check_output_path(Path(output_path))
+        check_output_path(Path(staged_path or output_path))
     if overlay_path is not None:
         check_overlay_path(Path(overlay_path))
     started = time.perf_counter()
     result, source = track_sequence(input_path, config, queries_path, seed, progress)
     seconds = time.perf_counter() - started
     tracks, info = result.result, result.info
-    _write_outputs(result, source, config, output_path, overlay_path, overlay_style)
+    _write_outputs(result, source, config, output_path, overlay_path, overlay_style, staged_path)
     rows = tracks.has_state
     return RunSummary(
         input=input_path, output=output_path, n_points=len(tracks.queries), n_frames=info.n_frames,
@@ -77,16 +79,17 @@ def track_input(
 
 
 def _write_outputs(result, source, config: Config, output_path: str | None, overlay_path: str | None,
-                   overlay_style) -> None:
+                   overlay_style, staged_path: str | None = None) -> None:
     """The track file (the CSV on stdout when ``output_path`` is None) and the overlay video, published together:
     when the overlay fails (a frame its second pass cannot read, a full disk) or is interrupted, the track file is
-    not published either (a file already at ``output_path`` stays as it was) and stdout gets nothing."""
+    not published either (a file already at ``output_path`` stays as it was) and stdout gets nothing. ``staged_path``:
+    as in :func:`track_input`."""
     tracks, info = result.result, result.info
     if overlay_path is None:
         if output_path is None:
             write_stdout(csv_text(tracks))
         else:
-            write_tracks(tracks, output_path, info, result.attributes, config.output)
+            write_tracks(tracks, staged_path or output_path, info, result.attributes, config.output, named=output_path)
         return
     from condtrack_cli.render import OverlayStyle, render_overlay
 
@@ -95,11 +98,12 @@ def _write_outputs(result, source, config: Config, output_path: str | None, over
         draw()
         write_stdout(csv_text(tracks))
         return
-    with staging_folder(output_path) as staging:
-        staged = staging / through_links(output_path).name
+    target = staged_path or output_path
+    with staging_folder(target) as staging:
+        staged = staging / through_links(target).name
         write_tracks(tracks, staged, info, result.attributes, config.output, named=output_path)
         draw()
-        publish(staged, output_path)
+        publish(staged, target)
 
 
 def write_stdout(text: str) -> None:

@@ -685,3 +685,25 @@ def test_skip_existing_redoes_an_output_whose_attributes_cannot_be_read(tmp_path
     with h5py.File(output, "r+") as f:
         f.attrs[key] = value
     assert _stored_run(output, []) is None
+
+
+def test_a_failed_write_names_the_output_not_the_staging_folder(clips, tmp_path, monkeypatch, sigterm_restored):
+    """A job writes into the batch's hidden staging folder; a write that failed (a full disk) was recorded, shown and
+    kept in the manifest as ``OUT/.outputs-<host>-<pid>-*.part/frames.h5: no space left on device``, a folder
+    gone once the batch ends. The error names the output, OUT/frames.h5."""
+    import errno
+
+    from condtrack_cli.cli import main
+
+    def full_disk(*_args, **_kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr("condtrack_cli.io.write.write_hdf5", full_disk)
+    out_dir = tmp_path / "tracks"
+    monkeypatch.setattr(sys, "argv", ["condtrack", "track", clips[0], "-m", "stk", "--out-dir", str(out_dir), "-q"])
+    with pytest.raises(SystemExit) as stop:
+        main()
+    assert stop.value.code == 1
+    assert [record["error"] for record in manifest(out_dir)] == [
+        f"{out_dir / 'frames.h5'}: no space left on device"]
+    assert [p.name for p in out_dir.iterdir()] == [MANIFEST]

@@ -99,8 +99,8 @@ def run_job(job: BatchJob) -> ClipRecord:
     stop_check = _StopCheck(job.stop_event) if job.stop_event else None
     try:
         with warnings_about(job.input):
-            summary = track_input(job.input, job.config, job.queries_path,
-                                  str(staged_output(job.staging, job.output)), job.seed, stop_check)
+            summary = track_input(job.input, job.config, job.queries_path, job.output, job.seed, stop_check,
+                                  staged_path=str(staged_output(job.staging, job.output)))
         digest = queries_hash(job.queries_path)
     except CondtrackError as error:
         return job_record(job, "failed", error=str(error), seconds=round(time.perf_counter() - started, 3),
