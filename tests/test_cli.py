@@ -62,6 +62,19 @@ def test_csv_on_stdout_without_output(shifted_folder):
     assert result.output.splitlines()[0] == ",".join(CSV_COLUMNS)
 
 
+def test_output_dash_is_stdout(shifted_folder, tmp_path):
+    """``-o -`` (the usual name of stdout) was refused as "unknown output format ''"; it writes the CSV on stdout, the
+    same bytes as no -o, and is still refused in a batch, which writes into --out-dir."""
+    folder, _ = shifted_folder
+    dashed = CliRunner().invoke(cli, ["track", str(folder), "-m", "stk", "-o", "-", "-q"])
+    assert dashed.exit_code == 0, dashed.output
+    assert dashed.output == CliRunner().invoke(cli, ["track", str(folder), "-m", "stk", "-q"]).output
+    batch = run_cli("track", str(folder), str(folder), "-o", "-", "--out-dir", str(tmp_path / "out"))
+    assert batch.returncode == 2 and batch.stderr.endswith("Error: -o and --overlay take one input; a batch writes "
+                                                           "into --out-dir\n")
+    assert not (tmp_path / "out").exists()
+
+
 def test_queries_are_tracked_forward_and_backward_from_their_frame(shifted_folder, tmp_path):
     folder, shifts = shifted_folder
     queries = tmp_path / "q.csv"

@@ -35,14 +35,15 @@ def json_value(value: Any) -> Any:
     return value
 
 
-def checked(check: Callable[[Path], None]):
+def checked(check: Callable[[Path], None], stdout: str | None = None):
     """A click callback running ``check(path)`` on the option's value when given: a CondtrackError it raises is a bad
-    value of that option (a usage error, exit 2, naming the option), as is an empty value."""
+    value of that option (a usage error, exit 2, naming the option), as is an empty value. ``stdout``: a value that
+    names standard output (``-``), passed on unchecked."""
 
     def callback(ctx: click.Context, param: click.Parameter, value: str | None) -> str | None:
         if value == "":  # Path("") is ".", which the checks would name instead
             raise click.BadParameter("an empty path; name a file", ctx, param)
-        if value is not None:
+        if value is not None and value != stdout:
             try:
                 check(Path(value))
             except CondtrackError as error:

@@ -46,8 +46,8 @@ def _complete_key(ctx: click.Context, param: click.Parameter, incomplete: str) -
 @click.option("-c", "--config", "config_path", type=click.Path(dir_okay=False), help="YAML config (default: configs/default.yaml's values).")
 @click.option("-p", "--queries", "queries_path", type=click.Path(dir_okay=False), help="CSV of query points: frame,x,y[,point_id].")
 @click.option("-m", "--method", type=_MethodChoice(), help="Tracking method (overrides filter.method); see `condtrack stages`.")
-@click.option("-o", "--output", "output_path", type=click.Path(dir_okay=False), callback=checked(track_file_suffix),
-              help="Output .h5/.hdf5 or .csv (default: CSV on stdout).")
+@click.option("-o", "--output", "output_path", type=click.Path(dir_okay=False, allow_dash=True),
+              callback=checked(track_file_suffix, stdout="-"), help="Output .h5/.hdf5 or .csv (default, or -: CSV on stdout).")
 @click.option("--overlay", "overlay_path", type=click.Path(dir_okay=False), callback=checked(video_suffix),
               help="Also render an overlay video (.mp4) of the tracks.")
 @overlay_options
@@ -93,6 +93,8 @@ def track(inputs, config_path, queries_path, method, output_path, overlay_path, 
         usage.fail("-o and --overlay take one input; a batch writes into --out-dir")
     if in_batch and out_dir is None:
         usage.fail("several inputs need --out-dir")
+    if output_path == "-":  # stdout, as without -o
+        output_path = None
     if not in_batch:
         refuse_batch_options({**batch, "jobs": jobs,
                               "format": usage.get_parameter_source("batch_format") is ParameterSource.COMMANDLINE})
