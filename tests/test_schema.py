@@ -214,6 +214,17 @@ def test_an_hdf5_of_another_schema_version_is_refused_naming_both(tmp_path):
         read_tracks(path)
 
 
+def test_an_hdf5_file_of_another_program_is_said_to_be_no_track_file(tmp_path):
+    """An HDF5 file without condtrack's root attributes was refused as "schema_version None is not supported", as if
+    it were a track file of an unknown schema."""
+    path = tmp_path / "other.h5"
+    with h5py.File(path, "w") as f:
+        f["x"] = np.arange(3)
+    message = f"{path}: not a condtrack track file (an HDF5 file without the root attribute 'schema_version')"
+    with pytest.raises(CondtrackError, match=f"^{re.escape(message)}$"):
+        read_tracks(path)
+
+
 def test_files_of_schema_1_0_are_read_as_gaussian(tmp_path):
     """Issue 27: a schema 1.0 file (no dof) is read with dof inf where a row exists, NaN elsewhere, and compares
     equal to a 2.0 file of the same tracks written Gaussian."""

@@ -255,6 +255,9 @@ def _read_hdf5(path: Path) -> tuple[Tracks, dict[str, Any]]:
         try:
             meta = {key: (value.decode() if isinstance(value, bytes) else value) for key, value in f.attrs.items()}
             version = meta.get("schema_version")
+            if version is None:  # another program's HDF5 file (a TAP-Vid or a model's), not a damaged track file
+                raise CondtrackError(f"{path}: not a condtrack track file (an HDF5 file without the root attribute "
+                                     "'schema_version')")
             if version not in READABLE_SCHEMA_VERSIONS:
                 raise CondtrackError(
                     f"{path}: schema_version {plain(version)} is not supported (this condtrack reads "
