@@ -214,6 +214,22 @@ def test_an_hdf5_of_another_schema_version_is_refused_naming_both(tmp_path):
         read_tracks(path)
 
 
+def test_a_csv_saved_with_a_byte_order_mark_or_windows_line_ends_reads_the_same(tmp_path):
+    """A golden CSV that an editor or a spreadsheet saved with a UTF-8 byte-order mark was refused with Python's
+    "'ascii' codec can't decode byte 0xef" (the queries and truth readers take it); it reads as the file it was, as
+    with CRLF line ends, and a byte that is not ASCII is named with its offset."""
+    path = tmp_path / "t.csv"
+    write_small(path)
+    expected, _ = read_tracks(path)
+    text = path.read_bytes()
+    for name, content in (("bom.csv", b"\xef\xbb\xbf" + text), ("crlf.csv", text.replace(b"\n", b"\r\n"))):
+        (tmp_path / name).write_bytes(content)
+        assert read_tracks(tmp_path / name)[0] == expected, name
+    (tmp_path / "latin.csv").write_bytes(text.replace(b"point_id", b"point_\xe9d", 1))
+    with pytest.raises(CondtrackError, match=r"latin.csv: not a condtrack CSV \(byte 0xe9 at offset 6 is not ASCII\)$"):
+        read_tracks(tmp_path / "latin.csv")
+
+
 def test_an_hdf5_file_of_another_program_is_said_to_be_no_track_file(tmp_path):
     """An HDF5 file without condtrack's root attributes was refused as "schema_version None is not supported", as if
     it were a track file of an unknown schema."""

@@ -15,6 +15,7 @@ only by the functions that open an HDF5 file (start-up time, issue 13).
 
 from __future__ import annotations
 
+import codecs
 import contextlib
 import numbers
 from pathlib import Path
@@ -75,9 +76,12 @@ def _parses(cell: str, dtype: type) -> bool:
 
 def _read_csv(path: Path) -> tuple[Tracks, dict[str, Any]]:
     try:
-        lines = path.read_text(encoding="ascii").splitlines()
-    except (OSError, UnicodeDecodeError) as error:
+        lines = path.read_bytes().removeprefix(codecs.BOM_UTF8).decode("ascii").splitlines()  # BOM: a spreadsheet's
+    except OSError as error:
         raise CondtrackError(f"{path}: cannot read the track file ({error})") from None
+    except UnicodeDecodeError as error:
+        raise CondtrackError(f"{path}: not a condtrack CSV (byte {error.object[error.start]:#04x} at offset "
+                             f"{error.start} is not ASCII)") from None
     header = tuple(lines[0].split(",")) if lines else ()
     if header not in (CSV_COLUMNS, CSV_COLUMNS_1):
         raise CondtrackError(f"{path}: not a condtrack CSV (expected the header {','.join(CSV_COLUMNS)})")
