@@ -488,6 +488,7 @@ def test_align_matches_ids_and_pads_frames():
     data = align(pred, gt)
     np.testing.assert_array_equal(data.point_id, [5])
     np.testing.assert_array_equal(data.missing_ids, [2, 7])
+    np.testing.assert_array_equal(data.unscored_ids, [9])
     np.testing.assert_array_equal(data.query_frame, [1])
     assert data.pred_xy.shape == (1, 4, 2) and np.isnan(data.pred_xy[0, [0, 3]]).all()
     np.testing.assert_array_equal(data.pred_visible, [[0, 1, 1, 0]])
@@ -560,6 +561,17 @@ def test_cli_json_notes_on_stderr(files, tmp_path):
     assert result.exit_code == 0, result.output
     assert json.loads(result.stdout) == pytest.approx(EXPECTED["first"], abs=1e-12)
     assert "1 GT point(s) missing" in result.stderr
+
+
+def test_cli_notes_the_predicted_points_the_gt_does_not_have(files, tmp_path):
+    """A predicted point absent from the GT was left out of every metric without a word (a GT point absent from the
+    prediction has its note); now it has one too, and the metrics are those of the points both files have."""
+    pred, _ = files
+    gt = write_gt_csv(tmp_path / "gt_less.csv", [row for row in fixture_gt_rows() if not row.startswith("1,")])
+    result = CliRunner().invoke(eval_command, [str(pred), str(gt), "--json"])
+    assert result.exit_code == 0, result.output
+    assert json.loads(result.stdout)["n_points"] == 1
+    assert result.stderr == f"note: 1 point(s) of {pred} not in the GT, not scored: 1\n"
 
 
 def test_cli_all_visible_gt_prints_null(tmp_path):

@@ -90,8 +90,8 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
     absent are not scored. OA, AJ and jaccard_x are n/a (null) when the GT has
     no occluded scored frame: there is then no visibility to judge; a metric of
     GT-visible scored frames (delta_avg, covP, ...) is n/a when there is none. Points are
-    matched by point_id; GT points missing from PRED are not scored (their count
-    is reported, on stderr with --json). Frames where PRED has no position count
+    matched by point_id; GT points missing from PRED, and points of PRED missing
+    from GT, are not scored (their counts are reported, on stderr with --json). Frames where PRED has no position count
     as not visible and not within any threshold. Each point's query must lie
     within 1 px of the GT on its query frame where the GT has it visible, else
     PRED is refused (tracked from other queries, e.g. detected without -p); a
@@ -113,8 +113,11 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
         write_plot(data, query_mode, plot_path, f"{pred}, '{query_mode}' query mode")
     notes = []
     if len(data.missing_ids):
-        shown = ", ".join(str(i) for i in data.missing_ids[:10]) + (", ..." if len(data.missing_ids) > 10 else "")
-        notes.append(f"note: {len(data.missing_ids)} GT point(s) missing from {pred}, not scored: {shown}")
+        notes.append(f"note: {len(data.missing_ids)} GT point(s) missing from {pred}, not scored: "
+                     f"{_first_ids(data.missing_ids)}")
+    if len(data.unscored_ids):
+        notes.append(f"note: {len(data.unscored_ids)} point(s) of {pred} not in the GT, not scored: "
+                     f"{_first_ids(data.unscored_ids)}")
     if truth.gt_xy.shape[1] > tracks.xy.shape[1]:
         notes.append(
             f"note: the GT has {truth.gt_xy.shape[1]} frames, {pred} only {tracks.xy.shape[1]}; "
@@ -126,6 +129,11 @@ def eval_command(pred: str, gt: str, query_mode: str, as_json: bool, gt_format: 
             click.echo(note, err=True)
     else:
         _print_table(result, notes, f"{pred} vs {gt}, '{query_mode}' query mode")
+
+
+def _first_ids(ids) -> str:
+    """The first ten point ids of ``ids`` for a note, ``...`` after them when there are more."""
+    return ", ".join(str(i) for i in ids[:10]) + (", ..." if len(ids) > 10 else "")
 
 
 def _frame_folder(folder: Path, frames: int) -> Path | None:

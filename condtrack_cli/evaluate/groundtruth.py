@@ -24,9 +24,9 @@ query, so a CSV point whose first row is off also passes when another of its row
 (``eval --queries``) gives a CSV's points their queries instead.
 
 Matching a prediction to the ground truth (``align``) is by ``point_id``:
-predicted points absent from the GT are ignored; GT points absent from the
-prediction (no row at all) are not scored and are listed in
-``Aligned.missing_ids`` for the caller to report. Both sides are padded to the
+predicted points absent from the GT are not scored and are listed in
+``Aligned.unscored_ids``; GT points absent from the prediction (no row at all)
+are not scored and are listed in ``Aligned.missing_ids``, both for the caller to report. Both sides are padded to the
 longer frame count: GT frames beyond the prediction count as frames without a
 predicted position (not visible, not within any threshold), predicted frames
 beyond the GT are not scored.
@@ -81,6 +81,7 @@ class Aligned:
     pred_cov: (P, F, 2, 2) px^2; pred_dof: (P, F) Student-t nu (inf: Gaussian).
     gt_xy: (P, F, 2); gt_visible, gt_known: (P, F) bool (as in ``GroundTruth``).
     missing_ids: (M,) int64 GT points that the prediction does not have.
+    unscored_ids: (U,) int64 predicted points (with a position) that the GT does not have: not scored.
     """
 
     point_id: np.ndarray
@@ -93,6 +94,7 @@ class Aligned:
     gt_visible: np.ndarray
     gt_known: np.ndarray
     missing_ids: np.ndarray
+    unscored_ids: np.ndarray
 
 
 def tapvid_to_pixels(points: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -337,6 +339,7 @@ def align(pred: Tracks, gt: GroundTruth) -> Aligned:
         gt_visible=_pad_frames(gt.visible[gt_index], n_frames, False),
         gt_known=_pad_frames(gt.known[gt_index], n_frames, False),
         missing_ids=np.setdiff1d(gt.point_id, common),
+        unscored_ids=np.setdiff1d(ids[present], common),
     )
 
 
