@@ -14,7 +14,8 @@ display); the motion stage's work arrays go before the pass's reports are stacke
 A reader thread decodes the next frame while the current one is tracked
 (``frames/prefetch.py``), and with more than one OpenCV thread (``--threads``) a
 second thread estimates the motion of the pair k -> k+1 while the filter steps
-frame k (``_track_frames``): the work of both, mostly in OpenCV and numpy, which
+frame k (``_track_frames``), and a third computes the dense field of the pair after
+it (``frame_motions``): the work of all, mostly in OpenCV and numpy, which
 release the GIL, runs on two cores; the tracks are those of one thread bit for bit.
 
 A point queried at frame k > 0 is tracked forward from k and backward from k:
@@ -47,13 +48,16 @@ from condtrack_cli.filters.gauss2 import symmetrize
 from condtrack_cli.filters.interface import Tracker
 from condtrack_cli.frame_reports import FrameReports, FrameStore, park, temporary_folder
 from condtrack_cli.frames.prefetch import Prefetched
-from condtrack_cli.motion.interface import FrameMotion, MotionStages
+from condtrack_cli.motion.interface import FrameMotion, MotionStages, PairFieldSource
 from condtrack_cli.queries import detected_queries
 from condtrack_cli.threads import threads_in_use
 from condtrack_cli.types import Frame, FrameEstimate, Queries, SequenceInfo, Tracks
 
 #: The name of the thread that estimates the motion one frame pair ahead of the filter.
 MOTION_THREAD = "condtrack-motion-ahead"
+
+#: The name of the thread that computes a motion stage's field one frame pair ahead of its estimators.
+FIELD_THREAD = "condtrack-field-ahead"
 
 
 def build_stage(config: Config, kind: str):
@@ -198,15 +202,38 @@ def query_rows_kept(filtered: Tracks, smoothed: Tracks) -> Tracks:
 
 
 def frame_motions(images: Iterable[np.ndarray], prev: Frame, motion: MotionStages, local: bool,
-                  moving_from: float) -> Iterator[tuple[Frame, FrameMotion | None]]:
+                  moving_from: float, fields_ahead: bool = False) -> Iterator[tuple[Frame, FrameMotion | None]]:
     """Each frame after ``prev`` (``images`` are frames ``prev.index + 1``, ...) with the motion of the pair ending
     there (``frame_motion``; ``local``: with the local field), estimated from frame index ``moving_from`` on.
 
-    Only the last two frames are kept (their pyramids)."""
+    ``fields_ahead``: the stage's ``field_source`` (when it has one) computes each pair's field in a thread of its
+    own (``FIELD_THREAD``), a pair ahead of the estimators, which are given it (``prime``): where the filter's own
+    step is the cheaper part (``clf`` on a KITTI clip), the field and the rest of the motion overlap. The same
+    fields, the same motion, bit for bit. Only the last two frames are kept (their pyramids)."""
+    source = motion.field_source if fields_ahead else None
+    if source is None:
+        for index, image in enumerate(images, prev.index + 1):
+            frame = Frame(index, image)
+            yield frame, frame_motion(motion, prev, frame, local) if index >= moving_from else None
+            prev = frame
+        return
+    with Prefetched(_pair_fields(images, prev, source, moving_from), name=FIELD_THREAD) as fields:
+        for index, (image, field) in enumerate(fields, prev.index + 1):
+            frame = Frame(index, image)
+            if field is not None:
+                source.prime(prev, frame, field)
+            yield frame, frame_motion(motion, prev, frame, local) if field is not None else None
+            prev = frame
+
+
+def _pair_fields(images: Iterable[np.ndarray], prev: Frame, source: PairFieldSource,
+                 moving_from: float) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+    """Each image after ``prev`` (as in :func:`frame_motions`) with the field of the pair ending there (None before
+    frame index ``moving_from``)."""
+    before = prev.image
     for index, image in enumerate(images, prev.index + 1):
-        frame = Frame(index, image)
-        yield frame, frame_motion(motion, prev, frame, local) if index >= moving_from else None
-        prev = frame
+        yield image, source.compute(before, image) if index >= moving_from else None
+        before = image
 
 
 def _track_frames(frames: Iterable[np.ndarray], info: SequenceInfo, config: Config, queries: Queries | None,
@@ -237,7 +264,8 @@ def _track_frames(frames: Iterable[np.ndarray], info: SequenceInfo, config: Conf
     # the pair k-1 -> k moves when a point was started before k
     moving_from = int(queries.frame.min()) + 1 if tracker.needs_motion and len(queries) else math.inf
     ahead = moving_from < math.inf and threads_in_use()["opencv"] > 1
-    pairs = frame_motions(frames, Frame(0, image) if ahead else first, motion, tracker.needs_local_motion, moving_from)
+    pairs = frame_motions(frames, Frame(0, image) if ahead else first, motion, tracker.needs_local_motion, moving_from,
+                          fields_ahead=ahead)
 
     def step(frame: Frame, prev: Frame | None, pair_motion: FrameMotion | None) -> None:
         scorer.see(frame.index, frame.gray)

@@ -194,20 +194,30 @@ class DenseFlow:
 
     def between(self, prev: Frame, cur: Frame) -> np.ndarray:
         if self._pair is None or self._pair[0] is not prev or self._pair[1] is not cur:
-            level = finest_scale(prev.image.shape, self.settings)
-            a, b = np.ascontiguousarray(prev.image), np.ascontiguousarray(cur.image)
-            if self._raw is None:
-                self._normalised.setFinestScale(level)
-                flow = self._normalised.calc(a, b, None)
-            elif self._normalised is None:
-                self._raw.setFinestScale(level)
-                flow = self._raw_field(a, b, self.settings.border_pad)
-            else:
-                flow = self._selected_field(a, b, level)
-            flow = np.ascontiguousarray(flow)
-            flow.flags.writeable = False
-            self._pair, self._flow = (prev, cur), flow
+            self.prime(prev, cur, self.compute(prev.image, cur.image))
         return self._flow
+
+    def compute(self, prev: np.ndarray, cur: np.ndarray) -> np.ndarray:
+        """(H, W, 2) float32 read-only field u(x) px from the (H, W) uint8 image ``prev`` to ``cur``: what
+        :meth:`between` returns, computed afresh (``motion/interface.py``, ``PairFieldSource``: the pipeline may call
+        this from a thread of its own, the only one that then uses the DIS instances)."""
+        level = finest_scale(prev.shape, self.settings)
+        a, b = np.ascontiguousarray(prev), np.ascontiguousarray(cur)
+        if self._raw is None:
+            self._normalised.setFinestScale(level)
+            flow = self._normalised.calc(a, b, None)
+        elif self._normalised is None:
+            self._raw.setFinestScale(level)
+            flow = self._raw_field(a, b, self.settings.border_pad)
+        else:
+            flow = self._selected_field(a, b, level)
+        flow = np.ascontiguousarray(flow)
+        flow.flags.writeable = False
+        return flow
+
+    def prime(self, prev: Frame, cur: Frame, field: np.ndarray) -> None:
+        """:meth:`between` of ``prev`` and ``cur`` is ``field`` (:meth:`compute` of their images)."""
+        self._pair, self._flow = (prev, cur), field
 
     def _selected_field(self, a: np.ndarray, b: np.ndarray, level: int) -> np.ndarray:
         """(H, W, 2) ``select``'s field between (H, W) uint8 frames: the normalised field at DIS level ``level``,
@@ -417,4 +427,5 @@ def make_dis_motion(settings: DisMotionSettings, **_context) -> MotionStages:
         global_motion=DisGlobalMotion(settings, flow),
         local_motion=DisLocalMotion(settings, flow),
         state_noise=StateNoise.of(settings),
+        field_source=flow,
     )

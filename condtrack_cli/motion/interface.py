@@ -9,7 +9,9 @@ hands the filter the result as a :class:`FrameMotion`. With more than one thread
 it does so in a thread of its own, one pair ahead of the filter: a stage's
 estimators are called from that thread alone, in pair order, and what they return
 (read by the filter while they estimate the next pair) must not change afterwards
-(work arrays reused from pair to pair stay inside the stage). Positions are px of frame k-1 in the package's
+(work arrays reused from pair to pair stay inside the stage). A stage's
+``field_source`` (``MotionStages``), when it has one, then computes each pair's
+field in a third thread, a pair ahead of the estimators, and primes them with it. Positions are px of frame k-1 in the package's
 pixel convention (x right, y down, (0, 0) the centre of the top-left pixel).
 The built-in stages are rows of ``registry.BUILTINS`` instead.
 """
@@ -18,6 +20,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Protocol
+
+import numpy as np
 
 from condtrack_cli.motion.model import MotionFit
 from condtrack_cli.motion.state_noise import StateNoise
@@ -45,6 +49,19 @@ class LocalMotionEstimator(Protocol):
         """
 
 
+class PairFieldSource(Protocol):
+    """The part of a stage that reads the two frames' images alone (a dense field), which the pipeline may compute in
+    a thread of its own, one pair ahead of the estimators (``pipeline.frame_motions``)."""
+
+    def compute(self, prev: np.ndarray, cur: np.ndarray) -> np.ndarray:
+        """The field from the (H, W) uint8 image ``prev`` (frame k-1) to ``cur`` (frame k); called from one thread
+        alone, in pair order."""
+
+    def prime(self, prev: Frame, cur: Frame, field: np.ndarray) -> None:
+        """The estimators of ``prev`` and ``cur`` (called next, from the estimators' thread) use ``field``, the
+        :meth:`compute` of their images."""
+
+
 @dataclass(frozen=True)
 class MotionStages:
     """What a motion factory builds: both estimators and Q_k of the global dynamics (eq. 1)."""
@@ -52,6 +69,9 @@ class MotionStages:
     global_motion: GlobalMotionEstimator
     local_motion: LocalMotionEstimator
     state_noise: StateNoise  #: Q_k (px^2) of the global fit's dynamics at any positions
+    #: the estimators' shared field, which the pipeline computes a pair ahead of them with more than one thread
+    #: (None: the estimators compute everything themselves)
+    field_source: PairFieldSource | None = None
 
 
 @dataclass(frozen=True)
