@@ -1,9 +1,10 @@
 """The motion stage one frame pair ahead of the filter, in a thread (``pipeline._track_frames``, issue 26 item 6).
 
 With more than one OpenCV thread the pipeline estimates the motion of the pair
-k -> k+1 in a thread while the filter steps frame k: the tracks must be those
-of the plain loop (one thread) bit for bit, the thread at most one pair ahead,
-its errors raised in the caller as the same exception, and no thread left
+k -> k+1 in a thread while the filter steps frame k, and the DIS field of the
+pair after it in another (``pipeline.frame_motions``): the tracks must be those
+of the plain loop (one thread) bit for bit, the threads at most one pair ahead,
+their errors raised in the caller as the same exception, and no thread left
 behind however the run ends.
 """
 
@@ -35,8 +36,8 @@ def opencv_threads(count: int):
         cv2.setNumThreads(before)
 
 
-def _motion_threads() -> list[threading.Thread]:
-    return [thread for thread in threading.enumerate() if thread.name == pipeline.MOTION_THREAD]
+def _motion_threads(name: str = pipeline.MOTION_THREAD) -> list[threading.Thread]:
+    return [thread for thread in threading.enumerate() if thread.name == name]
 
 
 @pytest.fixture(scope="module")
@@ -55,16 +56,21 @@ def test_the_threaded_motion_gives_the_plain_loops_tracks_bit_for_bit(clip, meth
     config = load_config(None, [f"filter.smooth={str(smooth).lower()}"], method)
     runs = {}
     for threads in (1, 2):
-        ahead = []
+        ahead, fields = [], []
+
+        def seen(index, _):
+            ahead.append(bool(_motion_threads()))
+            fields.append(bool(_motion_threads(pipeline.FIELD_THREAD)))
+
         with opencv_threads(threads):
-            runs[threads] = pipeline.run(source, source.info, config, queries,
-                                         on_frame=lambda index, _: ahead.append(bool(_motion_threads())))
+            runs[threads] = pipeline.run(source, source.info, config, queries, on_frame=seen)
         assert any(ahead) == (threads > 1)  # the motion thread ran beside the filter with 2 threads, never with 1
+        assert any(fields) == (threads > 1)  # and the field thread beside it
     for field in dataclasses.fields(runs[1]):
         if field.name not in ("queries", "extras"):
             plain, threaded = getattr(runs[1], field.name), getattr(runs[2], field.name)
             assert np.array_equal(plain, threaded, equal_nan=plain.dtype.kind == "f"), field.name
-    assert not _motion_threads()
+    assert not _motion_threads() and not _motion_threads(pipeline.FIELD_THREAD)
 
 
 def test_the_motion_thread_is_at_most_one_pair_ahead(clip, monkeypatch):
@@ -119,4 +125,30 @@ def test_a_run_ending_early_stops_and_joins_the_motion_thread(clip, error):
     before = set(threading.enumerate())
     with opencv_threads(2), pytest.raises(error):
         pipeline.run(source, source.info, load_config(None, [], "cnlf"), queries, on_frame=stop)
+    assert set(threading.enumerate()) == before
+
+
+def test_an_error_in_the_field_thread_reaches_the_caller_unchanged(clip, monkeypatch):
+    """The DIS field of a pair fails in the field thread: the frames before it were tracked, the same exception
+    reaches the caller, and both threads are joined."""
+    from condtrack_cli.motion.dense import DenseFlow
+
+    source, queries = clip
+    failure = ValueError("field failed")
+    compute, calls = DenseFlow.compute, []
+
+    def failing(self, prev, cur):
+        calls.append(threading.current_thread().name)
+        if len(calls) == 5:
+            raise failure
+        return compute(self, prev, cur)
+
+    monkeypatch.setattr(DenseFlow, "compute", failing)
+    stepped = []
+    before = set(threading.enumerate())
+    with opencv_threads(2), pytest.raises(ValueError) as raised:
+        pipeline.run(source, source.info, load_config(None, [], "clf"), queries,
+                     on_frame=lambda index, _: stepped.append(index))
+    assert raised.value is failure
+    assert stepped == [0, 1, 2, 3, 4] and set(calls) == {pipeline.FIELD_THREAD}
     assert set(threading.enumerate()) == before
