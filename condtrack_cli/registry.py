@@ -112,8 +112,10 @@ class StageSpec:
         if self.builtin or self.kind in ("detect", "output"):
             return built
         if self.kind == "motion":  # a MotionStages (motion/interface.py): its state noise is condtrack's StateNoise
+            source = built.field_source
             return dataclasses.replace(built, global_motion=PluginStage(built.global_motion, self),
-                                       local_motion=PluginStage(built.local_motion, self))
+                                       local_motion=PluginStage(built.local_motion, self),
+                                       field_source=None if source is None else PluginStage(source, self))
         if self.kind == "measure":
             from condtrack_cli.measure.interface import CheckedMeasurer  # numpy: not loaded by ``condtrack --help``
 

@@ -375,6 +375,38 @@ def test_a_plugin_stage_raising_is_a_condtrack_error_chained_to_its_exception(ki
         registry._STAGES[kind].pop("raising", None)
 
 
+def test_a_plugin_motion_stage_s_field_source_raising_is_a_condtrack_error():
+    """A motion plugin's ``field_source`` (motion/interface.py), which the pipeline runs in a thread of its own with
+    more than one OpenCV thread, is guarded as its estimators are: what it raises is one CondtrackError naming the
+    stage, chained to the plugin's exception."""
+    import cv2
+
+    from condtrack_cli.motion.dense import DisMotionSettings, make_dis_motion
+
+    class Field:
+        compute = staticmethod(raising)
+
+        @staticmethod
+        def prime(prev, cur, field):
+            raise AssertionError("never reached")
+
+    def motion(settings):
+        return dataclasses.replace(make_dis_motion(DisMotionSettings()), field_source=Field())
+
+    registry.register("motion", "raising_field", RaisingSettings)(motion)
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        with pytest.raises(ct.CondtrackError, match=r"^motion stage 'raising_field' \(plugin [\w.]*test_plugins\) "
+                                                    r"raised RuntimeError: out of cheese$") as raised:
+            ct.track(str(SAMPLE), queries=SAMPLE / "queries.csv", config={"motion": {"name": "raising_field"}},
+                     method="clf")
+        assert isinstance(raised.value.__cause__, RuntimeError)
+    finally:
+        cv2.setNumThreads(before)
+        registry._STAGES["motion"].pop("raising_field", None)
+
+
 def test_a_plugin_stage_s_property_raising_is_a_condtrack_error():
     """A frame source whose ``info`` is a property (the input opened lazily) raising ended `condtrack track` in a
     traceback: only the stage's methods were called through StageSpec.call. Reading an attribute is too now, and
