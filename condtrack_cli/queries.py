@@ -128,7 +128,8 @@ def checked_queries(where: str, point_id: np.ndarray, frame: np.ndarray, xy: np.
     inside = info.contains(xy) if info.width else np.isfinite(xy).all(axis=1)  # width 0: no frame size known
     if not inside.all():
         index = int(np.argmax(~inside))
-        reason = f"is outside the {info.width}x{info.height} frame" if info.width else "is not finite"
+        finite = bool(np.isfinite(xy[index]).all())
+        reason = f"is outside the {info.width}x{info.height} frame" if info.width and finite else "is not finite"
         raise CondtrackError(f"{where}: row {rows[index]}: point ({xy[index, 0]:g}, {xy[index, 1]:g}) {reason}")
     order = np.argsort(point_id, kind="stable")
     return Queries(point_id[order], frame[order], xy[order])

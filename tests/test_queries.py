@@ -89,6 +89,14 @@ def test_an_integer_array_s_frame_outside_the_sequence_is_named_as_given(dtype, 
     assert queries_from_rows(np.array([[9, 1, 2]], dtype=dtype), INFO).frame.tolist() == [9]
 
 
+@pytest.mark.parametrize("cell", ["nan", "inf", "-inf"])
+def test_a_query_that_is_not_finite_is_said_so(tmp_path, cell):
+    """A NaN or infinite coordinate was refused as 'outside the 64x48 frame', which sends the user looking at the
+    frame size; it is named for what it is."""
+    with pytest.raises(CondtrackError, match=rf"/q\.csv: row 3: point \(4, {cell}\) is not finite$"):
+        _read(tmp_path, f"frame,x,y\n0,4,5\n0,4,{cell}\n")
+
+
 @pytest.mark.parametrize("text, message", [
     ("frame,x,y\n\n\n0,4,abc\n", r"row 4, column 'y': 'abc' is not a number"),
     ("frame,x,y\n0,4,5\n\n0,4,5,7\n", r"row 4 has 4 fields, the header 3"),
