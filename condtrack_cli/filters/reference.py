@@ -100,6 +100,11 @@ REACQUIRE_FIT = 2.5
 #: (2 ``COARSE_REACH`` + 1)^2 of them, and a patch about as flat as the noise is matched as well by any flat one
 #: (bench/history.md, "Eleventh round")
 REACQUIRE_TEXTURE = 3.0
+
+#: Frames in a row a point must have been found on for where it is found with a vouched reference to be its
+#: ``steady_seen`` (:meth:`ReferenceMatcher._reacquire`'s last first-patch search).
+STEADY_FRAMES = 5
+
 #: ``warp_reference``: the warp is applied only where it moves some pixel of the patch by at least this much (px) ...
 WARP_REACH = 0.5
 #: ... and used only where its fit at the prediction is below this share of the patch as taken's (``lk_better``'s
@@ -257,6 +262,11 @@ class ReferenceMatcher:
         #: (P, 2) where each point was last found with a vouched reference (px), with ``lk_fallback``: the centre of
         #: the re-acquisition's first-patch search (:meth:`_reacquire`)
         self.vouched_seen = np.full((n_points, 2), np.nan)
+        #: (P,) the frames each point has been found on in a row, and (P, 2) where it was last found with a vouched
+        #: reference after ``STEADY_FRAMES`` such frames (px), with ``lk_fallback``: the centre of the
+        #: re-acquisition's last first-patch search (:meth:`_reacquire`)
+        self.found_run = np.zeros(n_points, np.int64)
+        self.steady_seen = np.full((n_points, 2), np.nan)
         self._halves: list[tuple[np.ndarray, HalfFrame]] = []  #: (image, its :class:`HalfFrame`) of recent frames
 
     def start(self, index: np.ndarray, frame: Frame, xy: np.ndarray) -> None:
@@ -277,6 +287,8 @@ class ReferenceMatcher:
         if self.settings.lk_fallback:
             self.anchor_half[index] = self.last_patch[index]
             self.vouched_seen[index] = xy
+            self.steady_seen[index] = xy
+            self.found_run[index] = 0
 
     def _take(self, index: np.ndarray, patches: np.ndarray, wide: np.ndarray | None) -> None:
         """Points ``index`` take the (n, t, t) ``patches`` as their reference, with ``warp_reference`` the (n, 2t - 1,
@@ -559,14 +571,18 @@ class ReferenceMatcher:
         if not lost.size:
             return m, r_used
         seen, vouched = self.last_seen[index[lost]], self.vouched_seen[index[lost]]
+        steady = self.steady_seen[index[lost]]
         elsewhere = np.flatnonzero(np.abs(vouched - seen).max(axis=1) > 2)  # the search's grain: 2 px
+        unsteady = np.flatnonzero((np.abs(steady - seen).max(axis=1) > 2) & (np.abs(steady - vouched).max(axis=1) > 2))
         anchor_half = self.anchor_half[index[lost]]
-        found = coarse_search(np.concatenate([self.last_patch[index[lost]], anchor_half, anchor_half[elsewhere]]),
-                              self._half(frame), np.concatenate([seen, seen, vouched[elsewhere]]))
-        count = len(lost)
+        found = coarse_search(np.concatenate([self.last_patch[index[lost]], anchor_half, anchor_half[elsewhere],
+                                              anchor_half[unsteady]]),
+                              self._half(frame), np.concatenate([seen, seen, vouched[elsewhere], steady[unsteady]]))
+        count, more = len(lost), 2 * len(lost) + len(elsewhere)
         attempts = [self._attempt(index, lost, found[:count], frame, predicted, s_pred, m, False),
                     self._attempt(index, lost, found[count : 2 * count], frame, predicted, s_pred, m, True),
-                    self._attempt(index, lost[elsewhere], found[2 * count :], frame, predicted, s_pred, m, True)]
+                    self._attempt(index, lost[elsewhere], found[2 * count : more], frame, predicted, s_pred, m, True),
+                    self._attempt(index, lost[unsteady], found[more:], frame, predicted, s_pred, m, True)]
         return self._match_attempts(index, attempts, frame, predicted, s_pred, m, r_used, valid, shown, shift,
                                     REACQUIRE_FIT, REACQUIRE_REACH)
 
@@ -634,6 +650,9 @@ class ReferenceMatcher:
         if s.lk_fallback:  # found with a vouched reference: where the re-acquisition's first patch is looked for
             found_vouched = measured.valid & self.vouched[index]
             self.vouched_seen[index[found_vouched]] = x_post[found_vouched]
+            self.found_run[index] = np.where(measured.valid, self.found_run[index] + 1, 0)
+            steady = found_vouched & (self.found_run[index] >= STEADY_FRAMES)
+            self.steady_seen[index[steady]] = x_post[steady]
         retaken = np.zeros(len(index), bool)
         self.anchor_held[index[~measured.valid]] = False
         self.offset_floor[index] = 0.0
