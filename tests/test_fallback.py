@@ -10,6 +10,8 @@ moves it and found there, and the prediction moves to that centre (``shift``).
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 
@@ -20,6 +22,7 @@ from condtrack_cli.filters.reference import (
     REACQUIRE_FRAMES,
     REACQUIRE_REACH,
     REACQUIRE_TEXTURE,
+    STEADY_FRAMES,
     GatedMeasurement,
     HalfFrame,
     ReferenceMatcher,
@@ -184,6 +187,42 @@ def test_a_point_dragged_out_of_reach_is_searched_for_by_its_first_patch_where_t
             reference.vouched_seen[:] = reference.last_seen
         found = _lost_for_three_frames(reference, index, frame0, frame1, xy, s_pred, around_the_query)
         assert reference.vouched[found.valid].all()  # the first patch taken back is vouched for
+
+
+def test_a_point_dragged_under_a_vouched_reference_is_searched_for_where_it_was_last_found_steadily():
+    """Re-acquisition by the first patch around where the point was last found on ``STEADY_FRAMES`` frames in a row
+    with a vouched reference (issue 45, dudek_03: a hand sweeping over the face, on whose edge the point was found
+    for a frame or two at a time, the drift check confirming a re-take there, so that where it was last found with
+    a vouched reference moved with the hand too). Both where the points were last found and where they were last
+    found vouched lie 70 px left and below their query, beyond the coarse search's reach of where they are on frame
+    1; where they were last found steadily (here the query) does not. Lost for 3 frames, they are found there by
+    their first patch, at their true position; with that centre moved as well, none is."""
+    rng = np.random.default_rng(1)
+    drag = np.array([-70.0, 70.0])
+    for around_the_query in (True, False):
+        frame0, frame1, xy, reference, index, s_pred = _started()
+        _on_an_occluder(reference, index, frame0, xy, s_pred, rng)
+        reference.last_seen[:] = reference.vouched_seen[:] = xy + drag
+        np.testing.assert_array_equal(reference.steady_seen, xy)  # taken at the query
+        if not around_the_query:
+            reference.steady_seen[:] = reference.last_seen
+        _lost_for_three_frames(reference, index, frame0, frame1, xy, s_pred, around_the_query)
+
+
+def test_where_a_point_was_last_found_steadily_moves_after_steady_frames_found_in_a_row():
+    """``steady_seen`` follows the point only once it has been found with a vouched reference on ``STEADY_FRAMES``
+    frames in a row: found on fewer (a frame or two on an occluder's edge between losses) it stays."""
+    frame0, frame1, xy, reference, index, s_pred = _started()
+    measured = reference.measure_in_gate(index, frame0, xy, s_pred)
+    assert measured.valid.all()
+    for run in range(1, STEADY_FRAMES + 1):
+        reference.refresh(index, frame0, xy, frame0, xy + run, np.ones(len(xy), bool), measured)
+        expected = xy + run if run >= STEADY_FRAMES else xy
+        np.testing.assert_array_equal(reference.steady_seen, expected)
+    lost = dataclasses.replace(measured, valid=np.zeros(len(xy), bool))
+    reference.refresh(index, frame0, xy, frame0, xy + 10, np.ones(len(xy), bool), lost)
+    reference.refresh(index, frame0, xy, frame0, xy + 11, np.ones(len(xy), bool), measured)
+    np.testing.assert_array_equal(reference.steady_seen, xy + STEADY_FRAMES)  # one frame found since the loss
 
 
 def test_a_point_both_searches_find_is_found_by_its_last_patch():
