@@ -22,7 +22,6 @@ from condtrack_cli.filters.reference import (
     REACQUIRE_FRAMES,
     REACQUIRE_REACH,
     REACQUIRE_TEXTURE,
-    STEADY_FRAMES,
     GatedMeasurement,
     HalfFrame,
     ReferenceMatcher,
@@ -30,7 +29,7 @@ from condtrack_cli.filters.reference import (
     coarse_search,
     lk_centres,
 )
-from condtrack_cli.filters.settings import MeasuredFilterSettings
+from condtrack_cli.filters.settings import STEADY_FRAMES, MeasuredFilterSettings
 from condtrack_cli.measure.interface import Measurement
 from condtrack_cli.measure.response import SSDSettings
 from condtrack_cli.measure.ssd import SSDMeasure, searched
@@ -183,8 +182,8 @@ def test_a_point_dragged_out_of_reach_is_searched_for_by_its_first_patch_where_t
         reference.last_seen[:] = xy + drag
         reference.vouched[:] = False
         np.testing.assert_array_equal(reference.vouched_seen, xy)  # taken at the query
-        if not around_the_query:
-            reference.vouched_seen[:] = reference.last_seen
+        if not around_the_query:  # where it was last found steadily moved with it too (the test below has it stay)
+            reference.vouched_seen[:] = reference.steady_seen[:] = reference.last_seen
         found = _lost_for_three_frames(reference, index, frame0, frame1, xy, s_pred, around_the_query)
         assert reference.vouched[found.valid].all()  # the first patch taken back is vouched for
 

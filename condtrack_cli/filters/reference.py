@@ -70,7 +70,7 @@ import numpy as np
 from condtrack_cli.filters import kalman
 from condtrack_cli.measure.interface import Measurement, Measurer
 from condtrack_cli.measure.surfaces import FrameSums, extract_templates, frame_sums, zero_mean_minima
-from condtrack_cli.filters.settings import REACQUIRE_FRAMES, MeasuredFilterSettings
+from condtrack_cli.filters.settings import REACQUIRE_FRAMES, STEADY_FRAMES, MeasuredFilterSettings
 from condtrack_cli.types import Frame
 
 
@@ -100,10 +100,6 @@ REACQUIRE_FIT = 2.5
 #: (2 ``COARSE_REACH`` + 1)^2 of them, and a patch about as flat as the noise is matched as well by any flat one
 #: (bench/history.md, "Eleventh round")
 REACQUIRE_TEXTURE = 3.0
-
-#: Frames in a row a point must have been found on for where it is found with a vouched reference to be its
-#: ``steady_seen`` (:meth:`ReferenceMatcher._reacquire`'s last first-patch search).
-STEADY_FRAMES = 5
 
 #: ``warp_reference``: the warp is applied only where it moves some pixel of the patch by at least this much (px) ...
 WARP_REACH = 0.5

@@ -13,6 +13,10 @@ from condtrack_cli.settings import OPENCV_INT_MAX, StageSettings
 #: last found (``reference.py``, ``ReferenceMatcher._reacquire``)
 REACQUIRE_FRAMES = 15
 
+#: Frames in a row a point must have been found on for where it is found with a vouched reference to be its
+#: ``steady_seen``, the centre of the re-acquisition's last first-patch search (``reference.py``, ``_reacquire``).
+STEADY_FRAMES = 5
+
 
 class InitialStateSettings(StageSettings):
     """Settings of every filter that carries a covariance from the query on (MDR, CLF, CNLF)."""
@@ -65,6 +69,7 @@ class MeasuredFilterSettings(InitialStateSettings):
                     "search at half resolution finds its patch, with the same tests; a point lost for 1 to "
                     f"{REACQUIRE_FRAMES} frames is searched for around where it was last found, by its last patch then "
                     "by its first, and by its first around where it was last found with a reference that patch vouched for "
+                    f"and where it was last so found after {STEADY_FRAMES} found frames in a row "
                     "(false: the gate around the prediction only, the paper's)",
     )
     lk_better: float = Field(
