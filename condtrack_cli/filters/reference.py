@@ -100,7 +100,6 @@ REACQUIRE_FIT = 2.5
 #: (2 ``COARSE_REACH`` + 1)^2 of them, and a patch about as flat as the noise is matched as well by any flat one
 #: (bench/history.md, "Eleventh round")
 REACQUIRE_TEXTURE = 3.0
-
 #: ``warp_reference``: the warp is applied only where it moves some pixel of the patch by at least this much (px) ...
 WARP_REACH = 0.5
 #: ... and used only where its fit at the prediction is below this share of the patch as taken's (``lk_better``'s
@@ -543,7 +542,10 @@ class ReferenceMatcher:
         check confirmed, or its first patch taken back) lies more than 2 px from where it was last found, its first
         patch is searched for in that square too, after the first: an occluder may have dragged the point farther
         than the search's reach before it was lost (dudek_03, where a hand sweeping over the face drags a point 100
-        px before it is lost: docs/departures.md). That match must
+        px before it is lost: docs/departures.md). Where the point was last found with a vouched reference after
+        ``STEADY_FRAMES`` found frames in a row (``steady_seen``) lies more than 2 px from both those centres, its first
+        patch is searched for there too, last: found on an occluder's edge for a frame or two between losses, under a
+        re-take the drift check confirmed there, the point had its ``vouched_seen`` dragged as well. Those matches must
         also fit the first patch clearly better (``lk_better``) than the first patch fits where the gate's match
         lies (the reference, re-taken on the occluder, fits the occluder well there). Where that match is used the
         point takes its first patch back as its reference. The searches, and their matches, are made for every
