@@ -211,18 +211,13 @@ def frame_motions(images: Iterable[np.ndarray], prev: Frame, motion: MotionStage
     step is the cheaper part (``clf`` on a KITTI clip), the field and the rest of the motion overlap. The same
     fields, the same motion, bit for bit. Only the last two frames are kept (their pyramids)."""
     source = motion.field_source if fields_ahead else None
-    if source is None:
-        for index, image in enumerate(images, prev.index + 1):
-            frame = Frame(index, image)
-            yield frame, frame_motion(motion, prev, frame, local) if index >= moving_from else None
-            prev = frame
-        return
-    with Prefetched(_pair_fields(images, prev, source, moving_from), name=FIELD_THREAD) as fields:
-        for index, (image, field) in enumerate(fields, prev.index + 1):
+    with (Prefetched(_pair_fields(images, prev, source, moving_from), name=FIELD_THREAD) if source is not None
+          else contextlib.nullcontext((image, None) for image in images)) as pairs:
+        for index, (image, field) in enumerate(pairs, prev.index + 1):
             frame = Frame(index, image)
             if field is not None:
                 source.prime(prev, frame, field)
-            yield frame, frame_motion(motion, prev, frame, local) if field is not None else None
+            yield frame, frame_motion(motion, prev, frame, local) if index >= moving_from else None
             prev = frame
 
 

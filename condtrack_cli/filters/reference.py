@@ -571,16 +571,17 @@ class ReferenceMatcher:
         seen, vouched = self.last_seen[index[lost]], self.vouched_seen[index[lost]]
         steady = self.steady_seen[index[lost]]
         elsewhere = np.flatnonzero(np.abs(vouched - seen).max(axis=1) > 2)  # the search's grain: 2 px
-        unsteady = np.flatnonzero((np.abs(steady - seen).max(axis=1) > 2) & (np.abs(steady - vouched).max(axis=1) > 2))
+        steady_apart = np.flatnonzero((np.abs(steady - seen).max(axis=1) > 2)
+                                      & (np.abs(steady - vouched).max(axis=1) > 2))
         anchor_half = self.anchor_half[index[lost]]
         found = coarse_search(np.concatenate([self.last_patch[index[lost]], anchor_half, anchor_half[elsewhere],
-                                              anchor_half[unsteady]]),
-                              self._half(frame), np.concatenate([seen, seen, vouched[elsewhere], steady[unsteady]]))
+                                              anchor_half[steady_apart]]),
+                              self._half(frame), np.concatenate([seen, seen, vouched[elsewhere], steady[steady_apart]]))
         count, more = len(lost), 2 * len(lost) + len(elsewhere)
         attempts = [self._attempt(index, lost, found[:count], frame, predicted, s_pred, m, False),
                     self._attempt(index, lost, found[count : 2 * count], frame, predicted, s_pred, m, True),
                     self._attempt(index, lost[elsewhere], found[2 * count : more], frame, predicted, s_pred, m, True),
-                    self._attempt(index, lost[unsteady], found[more:], frame, predicted, s_pred, m, True)]
+                    self._attempt(index, lost[steady_apart], found[more:], frame, predicted, s_pred, m, True)]
         return self._match_attempts(index, attempts, frame, predicted, s_pred, m, r_used, valid, shown, shift,
                                     REACQUIRE_FIT, REACQUIRE_REACH)
 
