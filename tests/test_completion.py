@@ -22,7 +22,8 @@ def test_commands_options_methods_and_config_keys_complete():
     assert completions(["track"], "--ov") == [("plain", "--overlay"), ("plain", "--overlay-points")]
     assert completions(["track", "-m"], "c") == [("plain", "clf"), ("plain", "cnlf")]
     assert completions(["track", "--set"], "filter.cnlf.pa") == [("plain", "filter.cnlf.particles"),
-                                                               ("plain", "filter.cnlf.path_lag")]
+                                                               ("plain", "filter.cnlf.path_lag"),
+                                                               ("plain", "filter.cnlf.path_points")]
     assert ("plain", "motion.q_floor") in completions(["track", "--set"], "motion.")
     assert completions(["render", "--ellipses"], "") == [("plain", "all"), ("plain", "visible"), ("plain", "none")]
     assert completions(["track"], "sample") == [("file", "sample")]  # INPUT: the shell lists the paths

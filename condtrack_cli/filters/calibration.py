@@ -197,8 +197,10 @@ FORGET = 0.5
 #: The Student-t's scale over its covariance, per term of the reported covariance (module docstring, "Student-t"):
 #: the filter's own max(lambda, 1) Sigma, the bounded part A of D, the rest of D, the coasting C and the walk W.
 #: Fitted together with the growth below (RATIO_BOUNDED kept) by group and method (issue 45; module docstring);
-#: RATIO_COAST refitted alone with R (0.0871 before it; docs/departures.md, "A point found again after coasting").
-RATIO_OWN = 0.103
+#: RATIO_COAST refitted alone with R (0.0871 before it; docs/departures.md, "A point found again after coasting");
+#: RATIO_OWN refitted alone with the CNLF's path estimate of proposal means (0.103 before it; docs/departures.md,
+#: "CNLF path estimate: the proposal means").
+RATIO_OWN = 0.075
 RATIO_BOUNDED = 1.0
 RATIO_DRIFT = 0.0005
 RATIO_COAST = 0.01

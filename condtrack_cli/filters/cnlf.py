@@ -25,6 +25,11 @@ all started points and all their particles at once:
   x_{0:k}^(i) with the final weights (the paper's 1/N is a typo for
   normalised weights), computed in ``finish``; the reported covariance on
   each frame is the weighted covariance of that frame's particles. A
+  departure (``path_points``, docs/departures.md): on each frame the path
+  holds the particle's proposal mean m^(i), the mean it was drawn around
+  (its expectation given its parent and z_k), not the draw itself: the same
+  weights and ancestry, without the draw's own noise (Rao-Blackwellisation;
+  ``particles`` is the paper's). A
   departure (``path_lag``, docs/departures.md): the estimate of frame j is
   fixed with the weights of frame j + ``path_lag`` and its particles are then
   dropped (a fixed-lag path estimate; at most ``path_lag`` + 1 frames of
@@ -105,13 +110,13 @@ def mixture_moments(log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray) -> tuple[n
 def propagate(
     normals: np.ndarray, log_w: np.ndarray, mu: np.ndarray, Q: np.ndarray, z: np.ndarray, R: np.ndarray,
     valid: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Draw the new particles from the optimal proposal and update the weights (Fig. 2).
 
     normals (n, N, 2): standard normal draws; log_w (n, N) normalised; mu (n, N, 2) = x + P(x) theta(x);
     Q (n, N, 2, 2); z (n, 2); R (n, 2, 2) finite; valid (n,): where False, the proposal is the
-    dynamics N(mu, Q) and the weights stay. Returns particles (n, N, 2) and
-    normalised log-weights (n, N).
+    dynamics N(mu, Q) and the weights stay. Returns particles (n, N, 2),
+    normalised log-weights (n, N) and the proposal means m (n, N, 2) the particles were drawn around.
     """
     R, z = R[:, None], z[:, None]  # (n, 1, 2, 2), (n, 1, 2): the same for all particles of a point
     q_inv, r_inv = inverse2(Q), inverse2(R)
@@ -122,7 +127,7 @@ def propagate(
     particles = sample_gauss2(m, C, normals)
     with np.errstate(invalid="ignore"):  # the rows without a measurement (z NaN or outside the gate) are not used
         log_like = log_gauss2(z, mu, R + Q)  # eq. (4): p(z | x_{k-1}) = N(z; mu, R + Q)
-    return particles, normalise(np.where(valid[:, None], log_w + log_like, log_w))
+    return particles, normalise(np.where(valid[:, None], log_w + log_like, log_w)), m
 
 
 def resample(uniform: np.ndarray, particles: np.ndarray, log_w: np.ndarray,
@@ -160,14 +165,19 @@ class CNLFTracker(Tracker):
         self.reference, self.errors = reference, errors
         p, n = len(queries), settings.particles
         self.particles = np.full((p, n, 2), np.nan)
+        #: (P, N, 2) the mean each current particle was drawn around (eq. 11; at a (re)start, the draw itself)
+        self.proposal_means = np.full((p, n, 2), np.nan)
         self.log_w = np.full((p, n), -np.log(n))
         self.lineage_start = np.full(p, -1)  #: pass frame at which each point's particles were (re)drawn
-        self.particle_history: list[np.ndarray] = []  #: per kept frame, (P, N, 2) particles, NaN off the CNLF
+        #: per kept frame, (P, N, 2) the positions the path estimate averages (``path_points``), NaN off the CNLF
+        self.path_history: list[np.ndarray] = []
+        self.keep_particles = store_particles or smooth  #: the particles of every frame are kept (particle_history)
+        self.particle_history: list[np.ndarray] = []  #: per frame, (P, N, 2) particles, NaN off the CNLF, if kept
         self.store_particles = store_particles
         #: per kept frame, the points resampled into it (m,) and the index of each of their particles' parent (m, N);
         #: every other particle is its own parent
         self.ancestor_history: list[tuple[np.ndarray, np.ndarray]] = []
-        self.first_kept = 0  #: pass frame of particle_history[0]; the frames before have a fixed path estimate
+        self.first_kept = 0  #: pass frame of path_history[0]; the frames before have a fixed path estimate
         self.fixed_paths: list[np.ndarray] = []  #: per frame before first_kept, (P, 2) path estimate, NaN off a lineage
         #: frame k - path_lag is fixed and dropped after frame k, unless all are wanted (stored particles, the smoother)
         self.lag = None if settings.path_lag is None or store_particles or smooth else settings.path_lag
@@ -190,13 +200,18 @@ class CNLFTracker(Tracker):
 
     def end_frame(self) -> None:
         """After a frame: keep its particles and their parents for the path estimate; fix the frame that falls out."""
-        self.particle_history.append(np.where((self.lineage_start >= 0)[:, None, None], self.particles, np.nan))
+        on = (self.lineage_start >= 0)[:, None, None]
+        means = self.settings.path_points == "proposal_means"
+        particles = np.where(on, self.particles, np.nan) if self.keep_particles or not means else None
+        self.path_history.append(np.where(on, self.proposal_means, np.nan) if means else particles)
+        if self.keep_particles:  # every frame's (the lag is off then); the same array when the paths hold them
+            self.particle_history.append(particles)
         self.ancestor_history.append(self.ancestors)
         if self.transitions is not None:
-            self.transitions.record(len(self.particle_history) - 1, np.arange(len(self.log_w)), log_w=self.log_w.copy())
-        if self.lag is not None and len(self.particle_history) > self.lag:
+            self.transitions.record(len(self.path_history) - 1, np.arange(len(self.log_w)), log_w=self.log_w.copy())
+        if self.lag is not None and len(self.path_history) > self.lag:
             self.fixed_paths.append(self._path_estimates(stop=1)[0])
-            del self.particle_history[0], self.ancestor_history[0]
+            del self.path_history[0], self.ancestor_history[0]
             self.first_kept += 1
 
     def adopt(self, index: np.ndarray, frame_index: int, xy: np.ndarray, cov: np.ndarray) -> None:
@@ -204,6 +219,7 @@ class CNLFTracker(Tracker):
         n = self.settings.particles
         normals = self.draws.normal_pairs(frame_index, START, index, n)
         self.particles[index] = sample_gauss2(np.repeat(xy[:, None], n, 1), np.repeat(cov[:, None], n, 1), normals)
+        self.proposal_means[index] = self.particles[index]
         self.log_w[index] = -np.log(n)
         self.lineage_start[index] = frame_index
         self.layer_step[index] = self.measured_step[index] = np.nan  # no layer known until measured twice running
@@ -259,9 +275,12 @@ class CNLFTracker(Tracker):
             linked = self.lineage_start[index] < frame.index
             self.transitions.record(frame.index, index[linked], mu=mu[linked], Q=Q[linked])
         normals = self.draws.normal_pairs(frame.index, PROPOSAL, index, self.settings.particles)
-        particles, log_w = propagate(normals, self.log_w[index], mu, Q, measured.z, measured.R_used, measured.valid)
+        particles, log_w, means = propagate(normals, self.log_w[index], mu, Q, measured.z, measured.R_used,
+                                            measured.valid)
         resampled, picks = resample(self.draws.uniform(frame.index, RESAMPLING, index)[:, 0], particles, log_w,
                                     self.settings)
+        means[resampled] = np.take_along_axis(means[resampled], picks[..., None], axis=1)  # each particle's own
+        self.proposal_means[index] = means
         self.ancestors = (index[resampled], picks)
         self.particles[index], self.log_w[index] = particles, log_w
         self._report(index, particles, log_w)
@@ -340,17 +359,18 @@ class CNLFTracker(Tracker):
     def _path_estimates(self, stop: int) -> list[np.ndarray]:
         """(P, 2) weighted path means with the current weights on the kept frames first_kept .. first_kept + stop - 1.
 
-        Paper Fig. 2, T = sum_i x_{0:k}^(i) w_k^(i): each current particle's ancestor on the frame,
-        weighted by the particle's weight; NaN for the points whose current lineage started after the frame.
+        Paper Fig. 2, T = sum_i x_{0:k}^(i) w_k^(i): each current particle's ancestor on the frame (its position
+        there as ``path_points`` says), weighted by the particle's weight; NaN for the points whose current lineage
+        started after the frame.
         """
         weights = np.exp(self.log_w)[..., None]  # (P, N, 1)
         lineage = np.broadcast_to(np.arange(self.settings.particles), self.log_w.shape).copy()
         resampled = np.zeros(len(self.log_w), bool)  # the points whose lineage is not the identity
         means = []
-        for j in range(len(self.particle_history) - 1, -1, -1):
+        for j in range(len(self.path_history) - 1, -1, -1):
             if j < stop:
                 inside = (self.lineage_start <= self.first_kept + j) & (self.lineage_start >= 0)
-                paths = self.particle_history[j][inside]  # (n, N, 2): each current particle's ancestor at j
+                paths = self.path_history[j][inside]  # (n, N, 2): each current particle's ancestor at j
                 moved = np.flatnonzero(resampled[inside])
                 paths[moved] = np.take_along_axis(paths[moved], lineage[inside][moved, :, None], axis=1)
                 mean = np.full((len(self.log_w), 2), np.nan)
@@ -369,7 +389,7 @@ class CNLFTracker(Tracker):
         estimate fixed ``path_lag`` frames after them; the query frame the query (module docstring).
         """
         xy = xy.copy()
-        estimates = self.fixed_paths + self._path_estimates(stop=len(self.particle_history))
+        estimates = self.fixed_paths + self._path_estimates(stop=len(self.path_history))
         for j, mean in enumerate(estimates):
             on = np.isfinite(mean[:, 0])
             xy[on, j] = mean[on]

@@ -142,6 +142,11 @@ class CNLFSettings(MeasuredFilterSettings):
         description="frames of particle paths kept: a frame's path estimate uses the weights this many frames later "
                     "(or the clip's end); null keeps them all (the paper's estimate; memory grows with the clip)",
     )
+    path_points: Literal["proposal_means", "particles"] = Field(
+        "proposal_means",
+        description="what a frame's path estimate averages: each particle's proposal mean (the mean it was drawn "
+                    "around, eq. 11: the draw's own noise left out) or the particles themselves (the paper's Fig. 2)",
+    )
 
 
 class AutoSettings(StageSettings):
