@@ -199,11 +199,12 @@ class CNLFTracker(Tracker):
         self.ancestors = (np.zeros(0, int), np.zeros((0, self.settings.particles), int))
 
     def end_frame(self) -> None:
-        """After a frame: keep its particles and their parents for the path estimate; fix the frame that falls out."""
+        """After a frame: keep its path points (``path_points``) and the particles' parents for the path estimate, and
+        its particles where they are kept; fix the frame that falls out."""
         on = (self.lineage_start >= 0)[:, None, None]
-        means = self.settings.path_points == "proposal_means"
-        particles = np.where(on, self.particles, np.nan) if self.keep_particles or not means else None
-        self.path_history.append(np.where(on, self.proposal_means, np.nan) if means else particles)
+        of_means = self.settings.path_points == "proposal_means"
+        particles = np.where(on, self.particles, np.nan) if self.keep_particles or not of_means else None
+        self.path_history.append(np.where(on, self.proposal_means, np.nan) if of_means else particles)
         if self.keep_particles:  # every frame's (the lag is off then); the same array when the paths hold them
             self.particle_history.append(particles)
         self.ancestor_history.append(self.ancestors)
