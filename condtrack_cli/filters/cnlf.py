@@ -180,7 +180,7 @@ class CNLFTracker(Tracker):
         self.first_kept = 0  #: pass frame of path_history[0]; the frames before have a fixed path estimate
         self.fixed_paths: list[np.ndarray] = []  #: per frame before first_kept, (P, 2) path estimate, NaN off a lineage
         #: frame k - path_lag is fixed and dropped after frame k, unless all are wanted (stored particles, the smoother)
-        self.lag = None if settings.path_lag is None or store_particles or smooth else settings.path_lag
+        self.lag = None if settings.path_lag is None or self.keep_particles else settings.path_lag
         self.transitions = TransitionLog(p, log_w=(n,), mu=(n, 2), Q=(n, 2, 2), excess=(2, 2)) if smooth else None
         #: each point's layer as last read, from before its last measurement (``_layer_motion``), and as measured
         #: then: its step (px/frame, NaN: none yet) and whether it moved with the dominant motion
@@ -203,10 +203,10 @@ class CNLFTracker(Tracker):
         its particles where they are kept; fix the frame that falls out."""
         on = (self.lineage_start >= 0)[:, None, None]
         of_means = self.settings.path_points == "proposal_means"
-        particles = np.where(on, self.particles, np.nan) if self.keep_particles or not of_means else None
-        self.path_history.append(np.where(on, self.proposal_means, np.nan) if of_means else particles)
-        if self.keep_particles:  # every frame's (the lag is off then); the same array when the paths hold them
-            self.particle_history.append(particles)
+        path = np.where(on, self.proposal_means if of_means else self.particles, np.nan)
+        self.path_history.append(path)
+        if self.keep_particles:  # every frame's (the lag is off then); the path's own array when it holds them
+            self.particle_history.append(np.where(on, self.particles, np.nan) if of_means else path)
         self.ancestor_history.append(self.ancestors)
         if self.transitions is not None:
             self.transitions.record(len(self.path_history) - 1, np.arange(len(self.log_w)), log_w=self.log_w.copy())
