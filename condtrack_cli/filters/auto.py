@@ -23,7 +23,13 @@ Rule, per point, before each step:
    predicted better. The evidence averages it: E <- (1 - a) E + a e_k with
    a = 1 / ``integration_frames``.
 3. Hysteresis: to the CLF when E < -``evidence_margin``, to the CNLF when
-   E > ``evidence_margin``; in between the point stays where it is.
+   E > ``evidence_margin``; in between the point stays where it is. A point on
+   the CLF that the CLF already predicts by the local motion (its ``select``,
+   ``clf.py``, chose it) stays on the CLF whatever E says (``keep_local_clf``;
+   rule 4 still decides for a point not found): both filters would then follow
+   the same motion, and the hand-over would only draw the CNLF's particles
+   afresh around the CLF's estimate (docs/departures.md, "`auto` keeps a point
+   on the CLF that follows the local motion").
 4. While the point is not found (no measurement in the gate: covered, or
    lost), there is no measurement to weigh. It keeps the local motion when
    the mean of the e_k it has had (the same weights as E, normalised by their
@@ -263,6 +269,8 @@ class AutoTracker(Tracker):
         margin = self.settings.evidence_margin
         e = self.evidence[index]
         want = np.where(e > margin, True, np.where(e < -margin, False, self.on_cnlf[index]))
+        if self.settings.keep_local_clf:  # rule 3: the CLF already follows the local motion
+            want &= self.on_cnlf[index] | ~self.clf.on_local[index]
         lost = ~self.visible[index] & np.isfinite(self.velocity[index, 0])
         if lost.any():
             x, cov = self.xy[index[lost]], self.cov[index[lost]]

@@ -161,6 +161,11 @@ class AutoSettings(StageSettings):
         0.25, ge=0,
         description="a point not found keeps the local motion while the mean evidence of its measurements is above this",
     )
+    keep_local_clf: bool = Field(
+        True,
+        description="a point on the CLF that the CLF predicts by the local motion stays there whatever its evidence "
+                    "(rule 4 still routes a point not found; false: the evidence hands it back to the CNLF)",
+    )
     occluder_jump: float | None = Field(
         1.5, gt=0,
         description="rule 5: a point found whose local step departs from its last measured step by more than this "
