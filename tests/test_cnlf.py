@@ -443,7 +443,7 @@ def test_auto_keeps_a_face_point_on_the_clf_once_the_clf_follows_the_local_motio
     (the clip's 0.845 against 0.831)."""
     from condtrack_cli.evaluate.bench.versus_lk import versus_lk_queries
     from condtrack_cli.evaluate.groundtruth import load_gt_csv
-    from condtrack_cli.evaluate.metrics import THRESHOLDS
+    from condtrack_cli.evaluate.metrics import tapvid_metrics
     from condtrack_cli.frames.readers import FrameSettings, open_frames
     from condtrack_cli.queries import Queries
 
@@ -458,9 +458,9 @@ def test_auto_keeps_a_face_point_on_the_clf_once_the_clf_follows_the_local_motio
         config = load_config(None, method="auto", overrides=[f"filter.auto.keep_local_clf={str(keep).lower()}"])
         tracks = pipeline.run(source, source.info, config, queries, seed=0)
         data = score_tracks(tracks, truth)[1]
-        error = np.linalg.norm(data.pred_xy - data.gt_xy, axis=-1)
-        after = data.gt_visible & (np.arange(error.shape[1])[None] > data.query_frame[:, None])
-        delta[keep] = [np.mean([(error[p][after[p]] < t).mean() for t in THRESHOLDS]) for p in points]
+        delta[keep] = [tapvid_metrics(data.pred_xy[[p]], data.pred_visible[[p]], None, data.gt_xy[[p]],
+                                      data.gt_visible[[p]], data.gt_known[[p]], data.query_frame[[p]],
+                                      "first")["delta_avg"] for p in points]
     assert all(a >= b + 0.03 for a, b in zip(delta[True], delta[False]))
 
 
